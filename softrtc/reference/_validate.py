@@ -1,0 +1,89 @@
+"""Input validation shared by every public reference function ([N-7]).
+
+Each checker raises ``ValueError`` whose message names the argument and its
+allowed range or shape. Nothing is clamped or coerced silently: an integer
+argument given as ``2.0`` or ``True`` is rejected, not converted.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import numpy as np
+
+
+def check_int(name: str, value, lo: int | None = None, hi: int | None = None) -> int:
+    """Return ``value`` as ``int`` if it is an integer in ``[lo, hi]`` ([N-7])."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Integral, np.integer)):
+        raise ValueError(f"{name} must be an integer{_range(lo, hi)}, got {value!r}")
+    v = int(value)
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise ValueError(f"{name} must be an integer{_range(lo, hi)}, got {v}")
+    return v
+
+
+def check_real(name: str, value, lo: float | None = None, hi: float | None = None,
+               lo_open: bool = False, hi_open: bool = False) -> float:
+    """Return ``value`` as ``float`` if finite and within the given bounds ([N-7])."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Real, np.floating, np.integer)):
+        raise ValueError(f"{name} must be a finite real number{_rrange(lo, hi, lo_open, hi_open)}, got {value!r}")
+    v = float(value)
+    bad = not math.isfinite(v)
+    if lo is not None:
+        bad |= v <= lo if lo_open else v < lo
+    if hi is not None:
+        bad |= v >= hi if hi_open else v > hi
+    if bad:
+        raise ValueError(f"{name} must be a finite real number{_rrange(lo, hi, lo_open, hi_open)}, got {v!r}")
+    return v
+
+
+def check_choice(name: str, value, choices) -> str:
+    """Return ``value`` if it is one of ``choices`` ([N-7])."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
+    return value
+
+
+def check_array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
+                lo: float | None = None, hi: float | None = None) -> np.ndarray:
+    """Return ``value`` as a finite float64 array of the given shape ([N-7], [N-8]).
+
+    ``shape`` may contain ``None`` for a free dimension.
+    """
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
+    if ndim is not None and arr.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+    if shape is not None:
+        if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+            want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+            raise ValueError(f"{name} must have shape {want}, got {list(arr.shape)}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
+    if lo is not None and arr.size and arr.min() < lo:
+        raise ValueError(f"{name} values must lie in [{lo}, {hi}], got min {arr.min()}")
+    if hi is not None and arr.size and arr.max() > hi:
+        raise ValueError(f"{name} values must lie in [{lo}, {hi}], got max {arr.max()}")
+    return arr
+
+
+def _range(lo, hi) -> str:
+    if lo is not None and hi is not None:
+        return f" in [{lo}, {hi}]"
+    if lo is not None:
+        return f" >= {lo}"
+    if hi is not None:
+        return f" <= {hi}"
+    return ""
+
+
+def _rrange(lo, hi, lo_open, hi_open) -> str:
+    if lo is None and hi is None:
+        return ""
+    left = "(" if lo_open else "["
+    right = ")" if hi_open else "]"
+    return f" in {left}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}{right}"

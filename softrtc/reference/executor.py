@@ -1,0 +1,110 @@
+"""Asynchronous chunk execution with a simulated delay (spec chapter X, 04-execution.md).
+
+Chunk c is requested at step c*s with the observation of that step. Its
+inference takes d_c steps, during which the previous chunk keeps running: the
+segment of steps [c*s, c*s + s) executes
+
+    prev[s : s + d_c]   then   new[d_c : s]                             [X-4]
+
+The first chunk (c = 0) is generated with d_0 = 0 and no prior ([X-2]). The
+prior of request c >= 1 is the previous chunk shifted by s into the new chunk's
+frame, zero-padded past the overlap ([X-3]):
+
+    >>> import numpy as np
+    >>> shift_prior(np.arange(6.0)[:, None], 4)[:, 0].tolist()
+    [4.0, 5.0, 0.0, 0.0, 0.0, 0.0]
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import check_array, check_int
+
+
+def check_delay(H: int, s: int, d: int) -> int:
+    """[X-1] A delay is executable when 0 <= d <= min(s, H - s)."""
+    H = check_int("H", H, 1)
+    s = check_int("s", s, 1, H)
+    return check_int("d", d, 0, min(s, H - s))
+
+
+def shift_prior(prev_chunk, s: int) -> np.ndarray:
+    """Prior Y[j] = prev[j + s] for j < H - s, 0 for j >= H - s ([X-3])."""
+    prev = check_array("prev_chunk", prev_chunk, ndim=2)
+    s = check_int("s", s, 1, prev.shape[0])
+    y = np.zeros_like(prev)
+    y[: prev.shape[0] - s] = prev[s:]
+    return y
+
+
+def segment(prev_chunk, new_chunk, s: int, d: int) -> np.ndarray:
+    """Actions executed in the s steps after a request with delay d ([X-4])."""
+    prev = check_array("prev_chunk", prev_chunk, ndim=2)
+    new = check_array("new_chunk", new_chunk, shape=prev.shape)
+    d = check_delay(prev.shape[0], s, d)
+    return np.concatenate([prev[s: s + d], new[d: s]], axis=0)
+
+
+def execute_chunks(chunks, delays, s: int) -> dict:
+    """Executed action sequence of C chunks generated with delays d_0 .. d_{C-1} ([X-2]..[X-5]).
+
+    Returns a dict with ``actions`` [C*s, A], ``chunk_index`` and ``token_index``
+    [C*s] (which chunk and which of its tokens each executed action came from).
+    """
+    ch = check_array("chunks", chunks, ndim=3)
+    C, H, A = ch.shape
+    if C < 1:
+        raise ValueError("chunks must hold at least one chunk, got 0")
+    s = check_int("s", s, 1, H)
+    ds = list(delays)
+    if len(ds) != C:
+        raise ValueError(f"delays must have one entry per chunk ({C}), got {len(ds)}")
+    check_int("delays[0]", ds[0], 0, 0)
+    actions, src_c, src_j = [ch[0, :s]], [np.zeros(s, int)], [np.arange(s)]
+    for c in range(1, C):
+        d = check_delay(H, s, ds[c])
+        actions.append(segment(ch[c - 1], ch[c], s, d))
+        src_c.append(np.r_[np.full(d, c - 1), np.full(s - d, c)])
+        src_j.append(np.r_[np.arange(s, s + d), np.arange(d, s)])
+    return {"actions": np.concatenate(actions), "chunk_index": np.concatenate(src_c).astype(int),
+            "token_index": np.concatenate(src_j).astype(int)}
+
+
+def closed_loop(generate, env_step, obs0, num_chunks: int, H: int, s: int, delays) -> dict:
+    """Run the executor in closed loop ([X-6]).
+
+    generate(obs, prior, d, c) -> chunk [H, A]  (prior is None for c = 0)
+    env_step(action) -> obs                      (called once per executed action)
+
+    Request c sees the observation of step c*s. Returns the executed actions,
+    the observations seen by each request, the chunks and the priors.
+    """
+    if not callable(generate) or not callable(env_step):
+        raise ValueError("generate and env_step must be callables")
+    C = check_int("num_chunks", num_chunks, 1)
+    H = check_int("H", H, 1)
+    s = check_int("s", s, 1, H)
+    ds = list(delays)
+    if len(ds) != C:
+        raise ValueError(f"delays must have one entry per chunk ({C}), got {len(ds)}")
+    check_int("delays[0]", ds[0], 0, 0)
+    obs = obs0
+    chunks, priors, request_obs, executed = [], [], [], []
+    prev = None
+    for c in range(C):
+        d = check_delay(H, s, ds[c])
+        prior = None if prev is None else shift_prior(prev, s)
+        request_obs.append(np.asarray(obs))
+        new = check_array(f"chunk {c} returned by generate", generate(obs, prior, d, c), ndim=2)
+        if new.shape[0] != H:
+            raise ValueError(f"generate must return chunks of shape [H={H}, A], got {list(new.shape)}")
+        seg = new[:s] if prev is None else segment(prev, new, s, d)
+        for a in seg:
+            executed.append(a)
+            obs = env_step(a)
+        chunks.append(new)
+        priors.append(prior)
+        prev = new
+    return {"actions": np.asarray(executed), "chunks": np.asarray(chunks), "priors": priors,
+            "request_obs": request_obs}

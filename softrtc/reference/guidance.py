@@ -1,0 +1,77 @@
+"""Inference-time RTC of Black et al. 2025: guided inpainting (spec chapter G, 03-inference.md).
+
+Per Euler step k with t = t_k and the base policy's scalar time:
+
+    v       = v(obs, x, t)
+    x1      = x + (1 - t) v                       denoised estimate      [G-2]
+    err     = W (Y - x1)                          weighted error         [G-3]
+    g       = (d x1 / d x)^T err = err + (1 - t) (dv/dx)^T err           [G-3]
+    lam     = min(c (t^2 + (1-t)^2) / (1-t)^2, beta), c = (1-t)/t         [G-4]
+    x       = x + (v + lam g) / T                                        [G-5]
+
+with c = +inf at t = 0, so lam = beta there. Guidance weights W come from
+weights.prefix_weights(H, d, H - s, schedule): "hard" uses zeros, "soft" exp ([G-1]).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._validate import check_array, check_choice, check_int, check_real
+from .sampler import euler_times
+from .weights import check_weights, prefix_weights
+
+MAX_GUIDANCE = 5.0
+GUIDANCE_SCHEDULES = {"hard": "zeros", "soft": "exp"}
+
+
+def guidance_prefix_weights(H: int, s: int, d: int, variant: str) -> np.ndarray:
+    """Guidance weights W: start = d, end = H - s, zeros (hard) or exp (soft) schedule ([G-1])."""
+    H = check_int("H", H, 1)
+    s = check_int("s", s, 1, H)
+    d = check_int("d", d, 0, H - s)
+    check_choice("variant", variant, tuple(GUIDANCE_SCHEDULES))
+    return prefix_weights(H, d, H - s, GUIDANCE_SCHEDULES[variant], "rtc")
+
+
+def guidance_weight(t: float, max_guidance: float = MAX_GUIDANCE) -> float:
+    """lam(t) = min(c (t^2 + (1-t)^2) / (1-t)^2, beta), c = (1-t)/t, c(0) = inf ([G-4])."""
+    t = check_real("t", t, 0.0, 1.0, hi_open=True)
+    beta = check_real("max_guidance", max_guidance, 0.0, lo_open=True)
+    c = math.inf if t == 0.0 else (1.0 - t) / t
+    inv_r2 = (t * t + (1.0 - t) ** 2) / (1.0 - t) ** 2
+    return min(c * inv_r2, beta)
+
+
+def guided_sample(field, obs, noise, prior, weights, num_steps: int,
+                  max_guidance: float = MAX_GUIDANCE, return_trace: bool = False):
+    """Guided (inpainting) sampler of inference-time RTC ([G-2]..[G-5]).
+
+    ``field`` must be callable as field(obs, x, t) and provide
+    field.vjp(obs, x, t, cotangent) (the VJP of v in x).
+    """
+    if not callable(field) or not callable(getattr(field, "vjp", None)):
+        raise ValueError("field must be callable and provide field.vjp(obs, x, t, cotangent)")
+    x = check_array("noise", noise, ndim=2)
+    obs = check_array("obs", obs, ndim=1)
+    y = check_array("prior", prior, shape=x.shape)
+    w = check_weights("weights", weights, x.shape[0])[:, None]
+    T = check_int("num_steps", num_steps, 1, 1 << 16)
+    beta = check_real("max_guidance", max_guidance, 0.0, lo_open=True)
+    trace = []
+    for t in euler_times(T):
+        tv = np.full(x.shape[0], t)
+        v = np.asarray(field(obs, x, tv), dtype=np.float64)
+        x1 = x + (1.0 - t) * v
+        err = w * (y - x1)
+        g = err + (1.0 - t) * np.asarray(field.vjp(obs, x, tv, err), dtype=np.float64)
+        lam = guidance_weight(t, beta)
+        vg = v + lam * g
+        nxt = x + vg / T
+        if return_trace:
+            trace.append({"state": x, "time": tv, "velocity": v, "denoised": x1, "error": err,
+                          "vjp": g, "guidance_weight": lam, "guided_velocity": vg, "next_state": nxt})
+        x = nxt
+    return (x, trace) if return_trace else x

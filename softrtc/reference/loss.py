@@ -1,0 +1,43 @@
+"""Weighted flow-matching loss (spec chapter L, 02-training.md).
+
+L = sum_j (1 - w_j) l_j / (sum_j (1 - w_j) + eta), with
+l_j = || v_j - (A_j - eps_j) ||^2 summed over the action dimension, eta = 1e-8.
+Clamped tokens (w_j = 1) have weight zero: their predictions do not enter L.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import check_array, check_real
+from .weights import check_weights
+
+ETA = 1e-8
+
+
+def token_errors(pred, actions, noise) -> np.ndarray:
+    """Per-token squared error l_j against the target A - eps ([L-1])."""
+    p = check_array("pred", pred, ndim=2)
+    a = check_array("actions", actions, shape=p.shape)
+    n = check_array("noise", noise, shape=p.shape)
+    return np.sum((p - (a - n)) ** 2, axis=-1)
+
+
+def flow_matching_loss(pred, actions, noise, weights, eta: float = ETA) -> float:
+    """Loss of one chunk ([L-1], [L-2]): weighted mean of l_j with weights 1 - w_j."""
+    l = token_errors(pred, actions, noise)
+    w = check_weights("weights", weights, l.shape[0])
+    eta = check_real("eta", eta, 0.0, 1.0, lo_open=True)
+    m = 1.0 - w
+    return float(np.sum(m * l) / (np.sum(m) + eta))
+
+
+def batch_loss(preds, actions, noise, weights, eta: float = ETA) -> float:
+    """Mean over the batch of per-chunk losses ([L-3]); arrays [B, H, A], weights [B, H]."""
+    p = check_array("preds", preds, ndim=3)
+    a = check_array("actions", actions, shape=p.shape)
+    n = check_array("noise", noise, shape=p.shape)
+    w = check_array("weights", weights, shape=p.shape[:2], lo=0.0, hi=1.0)
+    if p.shape[0] == 0:
+        raise ValueError("preds must have batch size >= 1, got 0")
+    return float(np.mean([flow_matching_loss(p[i], a[i], n[i], w[i], eta) for i in range(p.shape[0])]))

@@ -1,0 +1,111 @@
+"""Metrics on the executed action sequence (spec chapter M, 05-metrics.md).
+
+D_k is the mean L2 norm of the k-th finite difference; action delta = D_1 and
+action jerk = D_2 ([M-1], [M-2]):
+
+    >>> import numpy as np
+    >>> ramp = np.arange(5.0)[:, None] * np.array([[3.0, 4.0]])
+    >>> difference_norm(ramp, 1), difference_norm(ramp, 2)
+    (5.0, 0.0)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import check_array, check_int, check_real
+
+HIGH_DELAYS = (3, 4)
+
+
+def finite_differences(actions, order: int) -> np.ndarray:
+    """k-th forward finite difference along time, shape [N - k, A] ([M-1])."""
+    a = check_array("actions", actions, ndim=2)
+    k = check_int("order", order, 1, 16)
+    if a.shape[0] <= k:
+        raise ValueError(f"actions must have more than order={k} steps, got {a.shape[0]}")
+    return np.diff(a, n=k, axis=0)
+
+
+def difference_norm(actions, order: int) -> float:
+    """D_k = mean over t of || Δ^k a_t ||_2 ([M-1])."""
+    return float(np.mean(np.linalg.norm(finite_differences(actions, order), axis=-1)))
+
+
+def action_delta(actions) -> float:
+    """Action delta = D_1 ([M-2])."""
+    return difference_norm(actions, 1)
+
+
+def action_jerk(actions) -> float:
+    """Action jerk = D_2, the paper's 'jerk' ([M-2])."""
+    return difference_norm(actions, 2)
+
+
+def switch_steps(chunk_index) -> np.ndarray:
+    """Steps t >= 1 whose action comes from another chunk than step t-1 ([M-3])."""
+    ci = np.asarray(chunk_index)
+    if ci.ndim != 1 or not np.issubdtype(ci.dtype, np.integer):
+        raise ValueError("chunk_index must be a 1-D integer array")
+    return np.nonzero(ci[1:] != ci[:-1])[0] + 1
+
+
+def boundary_jump(actions, chunk_index) -> float:
+    """Mean || a_t - a_{t-1} || over chunk-switch steps t ([M-3])."""
+    a = check_array("actions", actions, ndim=2)
+    ci = np.asarray(chunk_index)
+    if ci.shape != (a.shape[0],):
+        raise ValueError(f"chunk_index must have shape [{a.shape[0]}], got {list(ci.shape)}")
+    sw = switch_steps(ci)
+    if sw.size == 0:
+        raise ValueError("chunk_index has no chunk switch; the boundary jump needs at least one")
+    return float(np.mean(np.linalg.norm(a[sw] - a[sw - 1], axis=-1)))
+
+
+def solve_rate(solved) -> float:
+    """Fraction of episodes solved ([M-4])."""
+    s = np.asarray(solved)
+    if s.ndim != 1 or s.size == 0 or s.dtype != bool:
+        raise ValueError("solved must be a non-empty 1-D boolean array")
+    return float(np.mean(s))
+
+
+def standard_error(values) -> float:
+    """Standard error of the mean, std(ddof=1) / sqrt(n), n >= 2 ([M-6])."""
+    v = check_array("values", values, ndim=1)
+    if v.size < 2:
+        raise ValueError(f"values must hold at least 2 entries, got {v.size}")
+    return float(np.std(v, ddof=1) / np.sqrt(v.size))
+
+
+def bootstrap_indices(num_values: int, num_resamples: int, seed: int) -> np.ndarray:
+    """Resample index matrix [B, n] = default_rng(seed).integers(0, n, (B, n)) ([M-5])."""
+    n = check_int("num_values", num_values, 1)
+    B = check_int("num_resamples", num_resamples, 1, 10**7)
+    seed = check_int("seed", seed, 0)
+    return np.random.default_rng(seed).integers(0, n, size=(B, n))
+
+
+def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -> tuple[float, float]:
+    """Percentile interval of resampled means ([M-5]), numpy's 'linear' quantiles."""
+    v = check_array("values", values, ndim=1)
+    idx = np.asarray(indices)
+    if idx.ndim != 2 or idx.shape[1] != v.size or not np.issubdtype(idx.dtype, np.integer) \
+            or idx.min() < 0 or idx.max() >= v.size:
+        raise ValueError(f"indices must be an integer array [B, {v.size}] with entries in [0, {v.size - 1}]")
+    c = check_real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
+    means = v[idx].mean(axis=1)
+    lo, hi = np.quantile(means, [(1.0 - c) / 2.0, 1.0 - (1.0 - c) / 2.0])
+    return float(lo), float(hi)
+
+
+def bootstrap_interval(values, num_resamples: int = 10000, seed: int = 0,
+                       confidence: float = 0.95) -> tuple[float, float]:
+    """95% bootstrap interval of the mean over levels ([M-5])."""
+    v = check_array("values", values, ndim=1)
+    return bootstrap_interval_from_indices(v, bootstrap_indices(v.size, num_resamples, seed), confidence)
+
+
+def is_high_delay(d: int) -> bool:
+    """High delay means d in {3, 4} ([M-7])."""
+    return check_int("d", d, 0) in HIGH_DELAYS

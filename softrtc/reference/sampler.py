@@ -1,0 +1,86 @@
+"""Euler samplers: naive and training-time (hard / soft) RTC (spec chapter S, 03-inference.md).
+
+Algorithm 1 of the paper, per solver step k = 0 .. T-1 with t_k = k / T:
+
+    x~[j] = w_j Y[j] + (1 - w_j) x[j]        blended state        [S-3]
+    t~_j  = w_j + (1 - w_j) t_k              blended flow time    [S-3]
+    x     = x~ + v(obs, x~, t~) / T                               [S-4]
+
+and the result is x after step T-1, without a final blend ([S-5]).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._validate import check_array, check_int
+from .weights import check_weights
+
+
+def euler_times(num_steps: int) -> np.ndarray:
+    """t_k = k / T for k = 0 .. T-1 ([S-1])."""
+    T = check_int("num_steps", num_steps, 1, 1 << 16)
+    return np.arange(T, dtype=np.float64) / T
+
+
+def blend(x, prior, weights) -> np.ndarray:
+    """x~ = w Y + (1 - w) x, token-wise ([S-3]). A token with w = 1 equals Y exactly."""
+    x = check_array("x", x, ndim=2)
+    y = check_array("prior", prior, shape=x.shape)
+    w = check_weights("weights", weights, x.shape[0])[:, None]
+    return w * y + (1.0 - w) * x
+
+
+def blend_time(t: float, weights) -> np.ndarray:
+    """t~_j = w_j + (1 - w_j) t ([S-3])."""
+    w = check_array("weights", weights, ndim=1, lo=0.0, hi=1.0)
+    return w + (1.0 - w) * float(t)
+
+
+def _check_inputs(field, obs, noise):
+    if not callable(field):
+        raise ValueError("field must be callable as field(obs, x, t) -> velocity [H, A]")
+    x0 = check_array("noise", noise, ndim=2)
+    obs = check_array("obs", obs, ndim=1)
+    return obs, x0
+
+
+def naive_sample(field, obs, noise, num_steps: int, return_trace: bool = False):
+    """Naive Euler sampler of the base policy ([S-2]): x += v(obs, x, t_k 1) / T.
+
+    Returns the chunk [H, A]; with ``return_trace`` also a list of per-step dicts
+    (state, time, velocity, next_state).
+    """
+    obs, x = _check_inputs(field, obs, noise)
+    trace = []
+    T = check_int("num_steps", num_steps, 1, 1 << 16)
+    for t in euler_times(T):
+        tv = np.full(x.shape[0], t)
+        v = np.asarray(field(obs, x, tv), dtype=np.float64)
+        nxt = x + v / T
+        if return_trace:
+            trace.append({"state": x, "time": tv, "velocity": v, "next_state": nxt})
+        x = nxt
+    return (x, trace) if return_trace else x
+
+
+def rtc_sample(field, obs, noise, prior, weights, num_steps: int, return_trace: bool = False):
+    """Training-time RTC sampler, hard or soft ([S-3], [S-4], [S-5]).
+
+    prior Y [H, A] is the previous chunk in the new chunk's frame ([X-3]);
+    weights [H] come from weights.soft_weights / hard_weights.
+    """
+    obs, x = _check_inputs(field, obs, noise)
+    y = check_array("prior", prior, shape=x.shape)
+    w = check_weights("weights", weights, x.shape[0])
+    T = check_int("num_steps", num_steps, 1, 1 << 16)
+    trace = []
+    for t in euler_times(T):
+        xb = w[:, None] * y + (1.0 - w[:, None]) * x
+        tb = w + (1.0 - w) * t
+        v = np.asarray(field(obs, xb, tb), dtype=np.float64)
+        nxt = xb + v / T
+        if return_trace:
+            trace.append({"state": x, "blended_state": xb, "time": tb, "velocity": v, "next_state": nxt})
+        x = nxt
+    return (x, trace) if return_trace else x
