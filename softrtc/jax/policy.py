@@ -1,0 +1,456 @@
+"""MLP-Mixer flow policy with per-token flow time (spec chapter P, ``spec/30-policy.md``).
+
+The network is the flow-matching velocity field ``v(obs, x, t)`` of the public
+RTC Kinetix benchmark, extended so that the flow time ``t`` is given per token
+([P-8]) and so that everything that depends on time alone can be computed ahead
+of time ([P-10], [P-11]).
+
+Worked example (tiny sizes)::
+
+    >>> import flax.nnx as nnx, jax.numpy as jnp
+    >>> cfg = PolicyConfig(channel_dim=8, channel_hidden_dim=16,
+    ...                    token_hidden_dim=4, num_layers=2, action_chunk_size=3)
+    >>> pol = FlowPolicy(obs_dim=5, action_dim=2, config=cfg, rngs=nnx.Rngs(0))
+    >>> obs, x = jnp.zeros((4, 5)), jnp.zeros((4, 3, 2))
+    >>> pol(obs, x, jnp.full((4, 3), 0.5)).shape          # per-token time
+    (4, 3, 2)
+    >>> cond = pol.time_conditioning(jnp.array([[1.0, 0.6, 0.2]]))  # one table row
+    >>> pol.apply_conditioned(obs, x, cond).shape        # serves any batch
+    (4, 3, 2)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pickle
+from typing import Any, Mapping
+
+import flax.nnx as nnx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "MIN_PERIOD",
+    "MAX_PERIOD",
+    "PolicyConfig",
+    "MLPMixerBlock",
+    "FlowPolicy",
+    "sincos_time_embedding",
+    "state_pure_dict",
+    "load_pure_dict",
+    "load_checkpoint",
+]
+
+# [P-3] Periods of the sin-cos time embedding, as in the public benchmark.
+MIN_PERIOD = 4e-3
+MAX_PERIOD = 4.0
+
+_COND_LAYERS = "mlp_stack"
+_COND_FINAL = "final_adaln"
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _is_tracer(a: Any) -> bool:
+    return isinstance(a, jax.core.Tracer)
+
+
+def _check_pos_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def _as_float_array(name: str, value: Any, *, allow_int: bool = False) -> jax.Array:
+    """Converts ``value`` to a JAX array, rejecting bool (and int unless allowed) dtypes [P-14]."""
+    if _is_tracer(value):
+        arr = value
+    else:
+        try:
+            arr = jnp.asarray(value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name} must be a real array, got {type(value).__name__}") from exc
+    dt = arr.dtype
+    ok = jnp.issubdtype(dt, jnp.floating) or (allow_int and jnp.issubdtype(dt, jnp.integer))
+    if dt == jnp.bool_ or not ok:
+        allowed = "a real (integer or floating)" if allow_int else "a floating"
+        raise ValueError(f"{name} must have {allowed} dtype, got {dt}")
+    if jnp.issubdtype(dt, jnp.integer):
+        arr = arr.astype(jnp.float32)
+    return arr
+
+
+def _check_finite(name: str, arr: jax.Array) -> None:
+    # Values can only be inspected outside tracing; under jit only shapes are checked [P-14].
+    if not _is_tracer(arr) and not bool(jnp.all(jnp.isfinite(arr))):
+        raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
+
+
+def _check_unit_interval(name: str, arr: jax.Array) -> None:
+    if _is_tracer(arr):
+        return
+    _check_finite(name, arr)
+    if arr.size and (bool(jnp.any(arr < 0.0)) or bool(jnp.any(arr > 1.0))):
+        raise ValueError(f"{name} must lie in [0, 1] (flow time, 0 = noise, 1 = data)")
+
+
+# --------------------------------------------------------------------------- config
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyConfig:
+    """Network sizes [P-1]; defaults are the benchmark architecture.
+
+    ``action_chunk_size`` is the horizon ``H``; ``channel_dim`` must be even
+    because the sin-cos time embedding has ``channel_dim / 2`` frequencies [P-3].
+    """
+
+    channel_dim: int = 256
+    channel_hidden_dim: int = 512
+    token_hidden_dim: int = 64
+    num_layers: int = 4
+    action_chunk_size: int = 8
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            _check_pos_int(f.name, getattr(self, f.name))
+        if self.channel_dim % 2:
+            raise ValueError(f"channel_dim must be even (sin-cos embedding), got {self.channel_dim}")
+
+
+# --------------------------------------------------------------------------- time embedding
+
+
+def sincos_time_embedding(t: Any, embedding_dim: int) -> jax.Array:
+    """Sin-cos embedding of flow time [P-3]: ``t[..., None] * 2*pi/period`` → ``[sin, cos]``.
+
+    ``t`` may have any shape; the result has shape ``t.shape + (embedding_dim,)``.
+    Periods are geometric from ``MIN_PERIOD`` to ``MAX_PERIOD`` over
+    ``embedding_dim / 2`` frequencies; sines come first.
+
+    >>> sincos_time_embedding(jnp.zeros((2, 3)), 4).tolist()[0][0]
+    [0.0, 0.0, 1.0, 1.0]
+    """
+    embedding_dim = _check_pos_int("embedding_dim", embedding_dim)
+    if embedding_dim % 2:
+        raise ValueError(f"embedding_dim must be even, got {embedding_dim}")
+    t = _as_float_array("t", t, allow_int=True)
+    _check_finite("t", t)
+    fraction = jnp.linspace(0.0, 1.0, embedding_dim // 2)
+    period = MIN_PERIOD * (MAX_PERIOD / MIN_PERIOD) ** fraction
+    # Same operation order as the public release (1/period, then *2, then *pi) so that
+    # released checkpoints see bit-identical embeddings.
+    angular = 1.0 / period * 2 * jnp.pi
+    arg = t[..., None] * angular
+    return jnp.concatenate([jnp.sin(arg), jnp.cos(arg)], axis=-1)
+
+
+# --------------------------------------------------------------------------- modules
+
+
+class MLPMixerBlock(nnx.Module):
+    """One mixer layer with adaLN-zero modulation [P-4].
+
+    Attribute names match the public release so that its parameter tree loads [P-7].
+    The block does not see time directly: it consumes the two precomputed
+    modulation tensors ``m1 = adaln_1(c)`` and ``m2 = adaln_2(c)`` (each ``[b, h, 3C]``,
+    ``b`` in {1, B}, ``h`` in {1, H}) produced by :meth:`FlowPolicy.time_conditioning`.
+    """
+
+    def __init__(
+        self, token_dim: int, token_hidden_dim: int, channel_dim: int, channel_hidden_dim: int, *, rngs: nnx.Rngs
+    ):
+        self.token_mix_in = nnx.Linear(token_dim, token_hidden_dim, use_bias=False, rngs=rngs)
+        self.token_mix_out = nnx.Linear(token_hidden_dim, token_dim, use_bias=False, rngs=rngs)
+        self.channel_mix_in = nnx.Linear(channel_dim, channel_hidden_dim, use_bias=False, rngs=rngs)
+        self.channel_mix_out = nnx.Linear(channel_hidden_dim, channel_dim, use_bias=False, rngs=rngs)
+        self.norm_1 = nnx.LayerNorm(channel_dim, use_scale=False, use_bias=False, rngs=rngs)
+        self.norm_2 = nnx.LayerNorm(channel_dim, use_scale=False, use_bias=False, rngs=rngs)
+        # adaLN-zero: zero kernels make every block the identity at initialisation [P-6].
+        zeros = nnx.initializers.zeros_init()
+        self.adaln_1 = nnx.Linear(channel_dim, 3 * channel_dim, kernel_init=zeros, rngs=rngs)
+        self.adaln_2 = nnx.Linear(channel_dim, 3 * channel_dim, kernel_init=zeros, rngs=rngs)
+
+    def modulation(self, time_features: jax.Array) -> dict[str, jax.Array]:
+        """``{"adaln_1": [..., 3C], "adaln_2": [..., 3C]}`` from time-MLP features ``[..., C]`` [P-10]."""
+        return {"adaln_1": self.adaln_1(time_features), "adaln_2": self.adaln_2(time_features)}
+
+    def __call__(self, x: jax.Array, m1: jax.Array, m2: jax.Array) -> jax.Array:
+        # Split order (scale, shift, gate) is fixed by the released checkpoints [P-4].
+        scale_1, shift_1, gate_1 = jnp.split(m1, 3, axis=-1)
+        scale_2, shift_2, gate_2 = jnp.split(m2, 3, axis=-1)
+
+        # Token mixing acts along H, so the per-token modulation is applied before it.
+        y = self.norm_1(x) * (1 + scale_1) + shift_1
+        y = jnp.swapaxes(y, -1, -2)
+        y = self.token_mix_out(nnx.gelu(self.token_mix_in(y)))
+        x = x + gate_1 * jnp.swapaxes(y, -1, -2)
+
+        y = self.norm_2(x) * (1 + scale_2) + shift_2
+        y = self.channel_mix_out(nnx.gelu(self.channel_mix_in(y)))
+        return x + gate_2 * y
+
+
+_List = getattr(nnx, "List", list)  # nnx.List marks the layer list as data on flax >= 0.12
+
+
+class FlowPolicy(nnx.Module):
+    """Velocity field ``v(obs [B, obs_dim], x [B, H, A], t [B, H] or [B]) -> [B, H, A]`` [P-1].
+
+    Three entry points compute the same function:
+
+    * ``policy(obs, x, t)`` — straightforward path; ``t`` per token ``[B, H]`` or
+      per sample ``[B]`` (shared by all tokens) [P-8].
+    * ``policy.time_conditioning(t)`` — every time-dependent tensor (all adaLN
+      modulations), for ``t`` of shape ``[..., H]`` or ``[..., 1]`` [P-10].
+    * ``policy.apply_conditioned(obs, x, cond)`` — the network given such a
+      ``cond``; leading dim 1 broadcasts over the batch [P-11].
+
+    Args:
+        obs_dim: flat observation size (679 in the Kinetix benchmark).
+        action_dim: action size ``A`` (6 in the benchmark).
+        config: :class:`PolicyConfig` sizes.
+        rngs: explicit ``nnx.Rngs`` (e.g. ``nnx.Rngs(0)``) for initialisation [P-15].
+    """
+
+    def __init__(self, *, obs_dim: int, action_dim: int, config: PolicyConfig = PolicyConfig(), rngs: nnx.Rngs):
+        obs_dim = _check_pos_int("obs_dim", obs_dim)
+        action_dim = _check_pos_int("action_dim", action_dim)
+        if not isinstance(config, PolicyConfig):
+            raise ValueError(f"config must be a PolicyConfig, got {type(config).__name__}")
+        if not isinstance(rngs, nnx.Rngs):
+            raise ValueError(f"rngs must be an nnx.Rngs (e.g. nnx.Rngs(0)), got {type(rngs).__name__}")
+        c = config.channel_dim
+        self.config = config
+        self.obs_dim = obs_dim
+        self.action_dim = action_dim
+        self.channel_dim = c
+        self.action_chunk_size = config.action_chunk_size
+        self.num_layers = config.num_layers
+
+        # Creation order follows the public release, so equal seeds give equal initial weights.
+        self.in_proj = nnx.Linear(action_dim + obs_dim, c, rngs=rngs)
+        self.mlp_stack = _List(
+            [
+                MLPMixerBlock(config.action_chunk_size, config.token_hidden_dim, c, config.channel_hidden_dim, rngs=rngs)
+                for _ in range(config.num_layers)
+            ]
+        )
+        self.time_mlp = nnx.Sequential(
+            nnx.Linear(c, c, rngs=rngs),
+            nnx.swish,
+            nnx.Linear(c, c, rngs=rngs),
+            nnx.swish,
+        )
+        self.final_norm = nnx.LayerNorm(c, use_scale=False, use_bias=False, rngs=rngs)
+        self.final_adaln = nnx.Linear(c, 2 * c, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
+        self.out_proj = nnx.Linear(c, action_dim, rngs=rngs)
+
+    # ------------------------------------------------------------------ input checks
+
+    def _check_obs_x(self, obs: Any, x: Any) -> tuple[jax.Array, jax.Array]:
+        obs = _as_float_array("obs", obs)
+        x = _as_float_array("x", x)
+        if obs.ndim != 2 or obs.shape[1] != self.obs_dim or obs.shape[0] < 1:
+            raise ValueError(f"obs must have shape [B, {self.obs_dim}] with B >= 1, got {tuple(obs.shape)}")
+        want = (obs.shape[0], self.action_chunk_size, self.action_dim)
+        if tuple(x.shape) != want:
+            raise ValueError(f"x must have shape [B, H, A] = {list(want)}, got {tuple(x.shape)}")
+        _check_finite("obs", obs)
+        _check_finite("x", x)
+        return obs, x
+
+    def _check_cond(self, cond: Any, batch: int) -> None:
+        h, c = self.action_chunk_size, self.channel_dim
+        if not isinstance(cond, Mapping) or set(cond) != {_COND_LAYERS, _COND_FINAL}:
+            raise ValueError(
+                f"cond must be a mapping with keys {{'{_COND_LAYERS}', '{_COND_FINAL}'}} as returned by "
+                "time_conditioning"
+            )
+        layers = cond[_COND_LAYERS]
+        if not isinstance(layers, (tuple, list)) or len(layers) != self.num_layers:
+            raise ValueError(f"cond['{_COND_LAYERS}'] must be a sequence of {self.num_layers} layer entries")
+
+        def leaf(path: str, a: Any, feat: int) -> None:
+            shape = tuple(getattr(a, "shape", ()))
+            ok = len(shape) in (2, 3) and shape[-1] == feat and shape[-2] in (1, h)
+            if ok and len(shape) == 3:
+                ok = shape[0] in (1, batch)
+            if not ok:
+                raise ValueError(
+                    f"cond{path} must have shape [b, h, {feat}] or [h, {feat}] with b in {{1, {batch}}} and "
+                    f"h in {{1, {h}}}, got {shape}"
+                )
+
+        for i, entry in enumerate(layers):
+            if not isinstance(entry, Mapping) or set(entry) != {"adaln_1", "adaln_2"}:
+                raise ValueError(f"cond['{_COND_LAYERS}'][{i}] must be a mapping with keys 'adaln_1', 'adaln_2'")
+            for k in ("adaln_1", "adaln_2"):
+                leaf(f"['{_COND_LAYERS}'][{i}]['{k}']", entry[k], 3 * c)
+        leaf(f"['{_COND_FINAL}']", cond[_COND_FINAL], 2 * c)
+
+    # ------------------------------------------------------------------ time path
+
+    def time_conditioning(self, t: Any) -> dict[str, Any]:
+        """All time-dependent tensors of the network for flow times ``t`` [P-10].
+
+        ``t`` has shape ``[..., H]`` (one time per token) or ``[..., 1]`` (one time
+        shared by all tokens, the naive-sampler fast path [P-12]); values in [0, 1].
+        Returns ``{"mlp_stack": ({"adaln_1": m, "adaln_2": m}, ...) per layer,
+        "final_adaln": f}`` with ``m`` of shape ``t.shape + (3C,)`` and ``f`` of shape
+        ``t.shape + (2C,)``. The result depends on ``t`` and the parameters only, so a
+        table over (delay, solver step) can be built once and indexed inside a jitted
+        sampler (``jax.tree.map(lambda a: a[k], table)``).
+
+        Example (benchmark sizes, C = 256): ``t`` of shape ``[5, 1, 8]`` (5 solver
+        steps, batch 1) gives ``m`` of shape ``[5, 1, 8, 768]``.
+        """
+        t = _as_float_array("t", t, allow_int=True)
+        h = self.action_chunk_size
+        if t.ndim < 1 or t.shape[-1] not in (1, h):
+            raise ValueError(f"t must have shape [..., {h}] or [..., 1], got {tuple(t.shape)}")
+        _check_unit_interval("t", t)
+        feats = self.time_mlp(sincos_time_embedding(t, self.channel_dim))
+        return {
+            _COND_LAYERS: tuple(block.modulation(feats) for block in self.mlp_stack),
+            _COND_FINAL: self.final_adaln(feats),
+        }
+
+    # ------------------------------------------------------------------ network
+
+    def apply_conditioned(self, obs: Any, x: Any, cond: Mapping[str, Any]) -> jax.Array:
+        """Velocity ``[B, H, A]`` from precomputed time conditioning ``cond`` [P-11].
+
+        Every leaf of ``cond`` has shape ``[b, h, F]`` (or ``[h, F]``, read as
+        ``b = 1``) with ``b`` in {1, B} and ``h`` in {1, H}; size-1 dims broadcast.
+        ``apply_conditioned(obs, x, time_conditioning(t[:, :]))`` equals
+        ``policy(obs, x, t)``.
+        """
+        obs, x = self._check_obs_x(obs, x)
+        self._check_cond(cond, obs.shape[0])
+        return self._forward(obs, x, cond)
+
+    def _forward(self, obs: jax.Array, x: jax.Array, cond: Mapping[str, Any]) -> jax.Array:
+        b = obs.shape[0]
+        # Action first, then observation: the in_proj kernel rows are laid out this way [P-2].
+        obs_tok = jnp.broadcast_to(obs[:, None, :], (b, self.action_chunk_size, self.obs_dim))
+        hdn = self.in_proj(jnp.concatenate([x, obs_tok], axis=-1))
+        for block, m in zip(self.mlp_stack, cond[_COND_LAYERS]):
+            hdn = block(hdn, m["adaln_1"], m["adaln_2"])
+        scale, shift = jnp.split(cond[_COND_FINAL], 2, axis=-1)
+        hdn = self.final_norm(hdn) * (1 + scale) + shift
+        return self.out_proj(hdn)
+
+    def __call__(self, obs: Any, x: Any, t: Any) -> jax.Array:
+        """Velocity ``[B, H, A]`` with flow time ``t`` of shape ``[B, H]`` or ``[B]`` [P-8].
+
+        A per-sample time ``[B]`` applies to every token; its modulation is computed
+        once per sample (shape ``[B, 1, F]``) as in the public release, and the result
+        equals that of the per-token time ``t[:, None]`` repeated over ``H`` [P-8].
+        """
+        obs, x = self._check_obs_x(obs, x)
+        t = _as_float_array("t", t, allow_int=True)
+        b, h = obs.shape[0], self.action_chunk_size
+        if t.shape == (b,):
+            t = t[:, None]
+        elif t.shape != (b, h):
+            raise ValueError(f"t must have shape [B] or [B, {h}] with B = obs.shape[0] = {b}, got {tuple(t.shape)}")
+        return self._forward(obs, x, self.time_conditioning(t))
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def state_pure_dict(model: FlowPolicy) -> dict:
+    """``nnx.state(model).to_pure_dict()``: the dict the public release pickles per policy [P-13]."""
+    if not isinstance(model, FlowPolicy):
+        raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
+    return nnx.state(model).to_pure_dict()
+
+
+def _flatten(tree: Any, prefix: tuple = ()) -> dict[tuple, Any]:
+    out: dict[tuple, Any] = {}
+    for k, v in tree.items():
+        path = prefix + (k,)
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, path))
+        else:
+            out[path] = v
+    return out
+
+
+def _path_str(path: tuple) -> str:
+    return "/".join(str(p) for p in path)
+
+
+def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
+    """Validates ``pure_dict`` against ``model``'s parameter tree and loads it in place [P-13].
+
+    ``pure_dict`` is a nested dict as written by ``nnx.state(model).to_pure_dict()``
+    (layer indices as ints; digit strings are accepted too). Every key path must
+    match, with the exact shape and a floating dtype and finite values; leaves are
+    cast to the model's dtype. Raises ``ValueError`` naming the key path (e.g.
+    ``mlp_stack/0/adaln_1/kernel``) and the expected shape. Returns ``model``.
+    """
+    if not isinstance(model, FlowPolicy):
+        raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
+    if not isinstance(pure_dict, Mapping):
+        raise ValueError(f"pure_dict must be a nested mapping of arrays, got {type(pure_dict).__name__}")
+    state = nnx.state(model)
+    expected = _flatten(state.to_pure_dict())
+    by_name = {tuple(str(p) for p in path): path for path in expected}
+
+    given: dict[tuple, Any] = {}
+    for path, leaf in _flatten(pure_dict).items():
+        key = tuple(str(p) for p in path)
+        if key not in by_name:
+            # A leaf where the model has a subtree is also "unexpected" at this path.
+            raise ValueError(f"pure_dict has unexpected key '{_path_str(key)}' (not a parameter of this FlowPolicy)")
+        given[key] = leaf
+    for key, path in by_name.items():
+        if key not in given:
+            shape = tuple(expected[path].shape)
+            raise ValueError(f"pure_dict is missing key '{_path_str(key)}' (expected shape {shape})")
+
+    loaded: dict[tuple, jax.Array] = {}
+    for key, path in by_name.items():
+        ref = expected[path]
+        name = f"pure_dict['{_path_str(key)}']"
+        try:
+            arr = np.asarray(given[key])
+        except Exception as exc:  # noqa: BLE001 - any non-array leaf is a format error
+            raise ValueError(f"{name} must be an array of shape {tuple(ref.shape)}") from exc
+        if tuple(arr.shape) != tuple(ref.shape):
+            raise ValueError(f"{name} has shape {tuple(arr.shape)}, expected shape {tuple(ref.shape)}")
+        if not np.issubdtype(arr.dtype, np.floating):
+            raise ValueError(f"{name} must have a floating dtype, got {arr.dtype}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must contain only finite values")
+        loaded[path] = jnp.asarray(arr, dtype=ref.dtype)
+
+    nested: dict = {}
+    for path, arr in loaded.items():
+        node = nested
+        for p in path[:-1]:
+            node = node.setdefault(p, {})
+        node[path[-1]] = arr
+    state.replace_by_pure_dict(nested)
+    nnx.update(model, state)
+    return model
+
+
+def load_checkpoint(model: FlowPolicy, path: str | os.PathLike) -> FlowPolicy:
+    """Loads a public-format ``bc`` checkpoint (a pickled pure dict) into ``model`` [P-13].
+
+    The file is unpickled, so only load files you trust. Public layout:
+    ``<run>/<epoch>/policies/<level_name>.pkl``, e.g. ``worlds_l_grasp_easy.pkl``.
+    """
+    if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
+        raise ValueError(f"path must name an existing checkpoint file, got {path!r}")
+    with open(path, "rb") as f:
+        pure = pickle.load(f)
+    return load_pure_dict(model, pure)
+
