@@ -1,0 +1,413 @@
+"""The 12 large Kinetix levels of the RTC benchmark as a pure-functional env.
+
+Implements chapter K of the spec (``spec/20-kinetix.md``): level lookup
+[K-1]..[K-3], benchmark settings [K-4]..[K-6], the keyed step with execution
+noise and automatic reset [K-7]..[K-10], batching [K-11], input validation
+[K-12] and the bare-env benchmark [K-13].
+
+This module imports JAX and kinetix at import time; ``softrtc.kinetix`` loads
+it lazily so that ``import softrtc`` stays free of both.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import numbers
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from kinetix.environment.env import make_kinetix_env
+from kinetix.environment.env_state import EnvParams, StaticEnvParams
+from kinetix.environment.spaces import ActionType, ObservationType
+from kinetix.util.saving import load_from_json_file
+
+# [K-1] the benchmark's level set, in the order the public release lists it.
+LEVEL_NAMES: tuple[str, ...] = (
+    "grasp_easy",
+    "catapult",
+    "cartpole_thrust",
+    "hard_lunar_lander",
+    "mjc_half_cheetah",
+    "mjc_swimmer",
+    "mjc_walker",
+    "h17_unicycle",
+    "chain_lander",
+    "catcher_v3",
+    "trampoline",
+    "car_launch",
+)
+
+# [K-4] static sizes of the "large" Kinetix levels and the benchmark's extras.
+LARGE_ENV_PARAMS: dict[str, int] = {
+    "num_polygons": 12,
+    "num_circles": 4,
+    "num_joints": 6,
+    "num_thrusters": 2,
+}
+FRAME_SKIP = 2
+NUM_MOTOR_BINDINGS = 4
+NUM_THRUSTER_BINDINGS = 2
+MAX_TIMESTEPS = 256
+# [K-8] std of the Gaussian noise added to every executed action.
+ACTION_NOISE_STD = 0.1
+# [K-5] dimensions of the symbolic-flat observation and the continuous action.
+OBS_DIM = 679
+ACTION_DIM = NUM_MOTOR_BINDINGS + NUM_THRUSTER_BINDINGS
+
+
+# ----------------------------------------------------------------------------
+# validation helpers ([K-12])
+# ----------------------------------------------------------------------------
+
+
+def _check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
+    # bool is an int subclass and floats like 2.0 are rejected on purpose (N-7).
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        raise ValueError(f"{name} must be an integer {rng}, got {value!r}")
+    value = int(value)
+    if value < lo or (hi is not None and value > hi):
+        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        raise ValueError(f"{name} must be an integer {rng}, got {value}")
+    return value
+
+
+def _check_nonneg_float(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a finite real number >= 0, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value) or value < 0.0:
+        raise ValueError(f"{name} must be a finite real number >= 0, got {value}")
+    return value
+
+
+def _check_key(name: str, key: Any) -> None:
+    """Accept a typed PRNG key (shape ``()``) or a raw ``uint32[2]`` key."""
+    shape = getattr(key, "shape", None)
+    dtype = getattr(key, "dtype", None)
+    if shape is None or dtype is None:
+        raise ValueError(f"{name} must be a JAX PRNG key (jax.random.key(...)), got {type(key).__name__}")
+    if jnp.issubdtype(dtype, jax.dtypes.prng_key):
+        if tuple(shape) != ():
+            raise ValueError(f"{name} must be a single PRNG key of shape (), got shape {tuple(shape)}")
+        return
+    if dtype == jnp.uint32 and tuple(shape) == (2,):
+        return
+    raise ValueError(
+        f"{name} must be a JAX PRNG key: typed key of shape () or uint32 array of shape (2,), "
+        f"got dtype {dtype} shape {tuple(shape)}"
+    )
+
+
+def _check_action(name: str, action: Any, shape: tuple[int, ...]) -> jax.Array:
+    # Only static properties are checked: values are traced under jit.
+    a_shape = getattr(action, "shape", None)
+    if a_shape is None:
+        action = jnp.asarray(action)
+        a_shape = action.shape
+    if tuple(a_shape) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(a_shape)}")
+    dtype = getattr(action, "dtype", None)
+    if dtype is None or not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"{name} must be a floating-point array with values in [-1, 1], got dtype {dtype}")
+    return action
+
+
+# ----------------------------------------------------------------------------
+# level lookup ([K-1]..[K-3])
+# ----------------------------------------------------------------------------
+
+
+def project_root() -> Path:
+    """Directory holding ``pyproject.toml``, found upward from this file [K-2]."""
+    here = Path(__file__).resolve().parent
+    for cand in (here, *here.parents):
+        if (cand / "pyproject.toml").is_file():
+            return cand
+    # Installed without the source tree: fall back to the package's parent.
+    return here.parent.parent
+
+
+def default_levels_dir() -> Path | None:
+    """``<project root>/../shared/kinetix-levels`` when it exists, else ``None`` [K-2]."""
+    cand = (project_root().parent / "shared" / "kinetix-levels").resolve()
+    return cand if cand.is_dir() else None
+
+
+def resolve_levels_dir(levels_dir: str | os.PathLike | None = None, names=LEVEL_NAMES) -> Path:
+    """Absolute levels directory holding ``<name>.json`` for every name [K-2], [K-3].
+
+    Raises ``FileNotFoundError`` naming the missing files and the directory
+    searched; ``ValueError`` for an unknown level name.
+    """
+    names = tuple(names)
+    for n in names:
+        _check_level_name(n)
+    if levels_dir is None:
+        d = default_levels_dir()
+        if d is None:
+            searched = project_root().parent / "shared" / "kinetix-levels"
+            raise FileNotFoundError(
+                f"no Kinetix levels directory given and the default {searched} does not exist; "
+                f"pass levels_dir= a directory holding {', '.join(n + '.json' for n in names)}"
+            )
+    else:
+        if not isinstance(levels_dir, (str, os.PathLike)):
+            raise ValueError(f"levels_dir must be a path or None, got {type(levels_dir).__name__}")
+        d = Path(levels_dir).expanduser().resolve()
+        if not d.is_dir():
+            raise FileNotFoundError(f"levels_dir {d} is not a directory")
+    missing = [f"{n}.json" for n in names if not (d / f"{n}.json").is_file()]
+    if missing:
+        raise FileNotFoundError(f"Kinetix level files missing from {d}: {', '.join(missing)}")
+    return d
+
+
+def _check_level_name(level_name: Any) -> str:
+    if not isinstance(level_name, str) or level_name not in LEVEL_NAMES:
+        raise ValueError(f"level_name must be one of {', '.join(LEVEL_NAMES)}; got {level_name!r}")
+    return level_name
+
+
+def benchmark_static_env_params() -> StaticEnvParams:
+    """Static params of the benchmark [K-4]."""
+    return StaticEnvParams(
+        **LARGE_ENV_PARAMS,
+        frame_skip=FRAME_SKIP,
+        num_motor_bindings=NUM_MOTOR_BINDINGS,
+        num_thruster_bindings=NUM_THRUSTER_BINDINGS,
+    )
+
+
+def load_level(level_name: str, levels_dir: str | os.PathLike | None = None):
+    """Load one level file as a kinetix ``EnvState`` [K-1]..[K-4].
+
+    The file's static and dynamic params are checked against the benchmark's
+    (screen size aside, which affects rendering only); a mismatch is a
+    ``ValueError`` because the compiled env would silently differ.
+    """
+    _check_level_name(level_name)
+    d = resolve_levels_dir(levels_dir, (level_name,))
+    # kinetix resolves relative paths inside its own package, so pass absolute.
+    level, file_static, file_params = load_from_json_file(str((d / f"{level_name}.json").resolve()))
+    want = benchmark_static_env_params()
+    got = file_static.replace(screen_dim=want.screen_dim, downscale=want.downscale)
+    if got != want:
+        raise ValueError(f"level file {d / (level_name + '.json')} has static params {file_static}, expected {want}")
+    if file_params.max_timesteps != MAX_TIMESTEPS:
+        raise ValueError(
+            f"level file {d / (level_name + '.json')} has max_timesteps {file_params.max_timesteps}, "
+            f"expected {MAX_TIMESTEPS}"
+        )
+    return level
+
+
+# ----------------------------------------------------------------------------
+# the task ([K-5]..[K-11])
+# ----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class KinetixTask:
+    """One benchmark level as pure functions of explicit PRNG keys [K-7].
+
+    Build with :func:`make_env`. ``reset``/``step`` act on one environment,
+    ``reset_batch``/``step_batch`` on a leading batch axis via ``jax.vmap``
+    [K-11]. All are traceable; wrap them in ``jax.jit`` yourself.
+    """
+
+    level_name: str
+    levels_dir: Path
+    level: Any  # kinetix EnvState the level resets to [K-9]
+    env: Any
+    env_params: EnvParams
+    static_env_params: StaticEnvParams
+    obs_dim: int
+    action_dim: int
+    action_noise_std: float = ACTION_NOISE_STD
+
+    def reset(self, key: jax.Array):
+        """``(obs [obs_dim], state)`` at the level's initial state [K-7], [K-9]."""
+        _check_key("key", key)
+        obs, state = self.env.reset(key, self.env_params)
+        return obs, state
+
+    def step(self, key: jax.Array, state, action: jax.Array):
+        """One control step: ``(obs, state, reward, done, info)`` [K-7]..[K-10].
+
+        ``key`` is split into a noise key (the N(0, std^2) noise added to
+        ``action`` [K-8]) and the kinetix step key. When the step ends the
+        episode the returned ``obs``/``state`` are those of the reset level
+        [K-9]. ``info`` holds ``solved`` (episode ended by reaching the goal),
+        ``timeout``, ``executed_action`` (the noisy action) and ``distance``
+        [K-10].
+        """
+        _check_key("key", key)
+        action = _check_action("action", action, (self.action_dim,))
+        noise_key, env_key = jax.random.split(key)
+        noisy = action + self.action_noise_std * jax.random.normal(noise_key, action.shape, action.dtype)
+        # timestep before stepping tells a timeout apart from a goal/fail end.
+        next_t = state.timestep + 1
+        obs, state, reward, done, kinfo = self.env.step(env_key, state, noisy, self.env_params)
+        goal = jnp.asarray(kinfo["GoalR"], bool)
+        info = {
+            "solved": jnp.logical_and(done, goal),
+            "timeout": jnp.logical_and(done, jnp.logical_and(~goal, next_t >= self.env_params.max_timesteps)),
+            "executed_action": noisy,
+            "distance": kinfo["distance"],
+        }
+        return obs, state, reward, done, info
+
+    def reset_batch(self, key: jax.Array, n: int):
+        """``n`` independent resets, ``obs`` of shape ``[n, obs_dim]`` [K-11]."""
+        _check_key("key", key)
+        n = _check_int("n", n, 1)
+        return jax.vmap(self.reset)(jax.random.split(key, n))
+
+    def step_batch(self, key: jax.Array, state, action: jax.Array):
+        """Step ``n`` environments; ``action`` is ``[n, action_dim]`` [K-11].
+
+        Environment ``i`` uses ``jax.random.split(key, n)[i]`` as its key.
+        """
+        _check_key("key", key)
+        shape = getattr(action, "shape", None)
+        if shape is None or len(shape) != 2 or shape[0] < 1:
+            raise ValueError(f"action must have shape [n >= 1, {self.action_dim}], got {shape}")
+        n = shape[0]
+        _check_action("action", action, (n, self.action_dim))
+        lead = {x.shape[0] if x.ndim else None for x in jax.tree.leaves(state)}
+        if lead != {n}:
+            raise ValueError(f"state must be batched with leading dimension n={n} (from action), got {sorted(map(str, lead))}")
+        return jax.vmap(self.step)(jax.random.split(key, n), state, action)
+
+
+def make_env(
+    level_name: str,
+    levels_dir: str | os.PathLike | None = None,
+    action_noise_std: float = ACTION_NOISE_STD,
+) -> KinetixTask:
+    """Build the benchmark env for ``level_name`` [K-1]..[K-6].
+
+    ``levels_dir`` defaults to ``<project root>/../shared/kinetix-levels``
+    [K-2]. ``action_noise_std`` (default 0.1 [K-8]) may be set to 0 for
+    noiseless execution.
+    """
+    _check_level_name(level_name)
+    action_noise_std = _check_nonneg_float("action_noise_std", action_noise_std)
+    d = resolve_levels_dir(levels_dir, (level_name,))
+    level = load_level(level_name, d)
+    static = benchmark_static_env_params()
+    params = EnvParams()
+    # reset_fn returning the level makes kinetix's auto-reset replay the same
+    # level, as the benchmark's AutoReplayWrapper did [K-9].
+    env = make_kinetix_env(
+        ActionType.CONTINUOUS,
+        ObservationType.SYMBOLIC_FLAT,
+        lambda _key: level,
+        params,
+        static,
+        auto_reset=True,
+    )
+    obs_dim = int(env.observation_space(params).shape[0])
+    action_dim = int(env.action_space(params).shape[0])
+    return KinetixTask(
+        level_name=level_name,
+        levels_dir=d,
+        level=level,
+        env=env,
+        env_params=params,
+        static_env_params=static,
+        obs_dim=obs_dim,
+        action_dim=action_dim,
+        action_noise_std=action_noise_std,
+    )
+
+
+# ----------------------------------------------------------------------------
+# bare-env benchmark ([K-13])
+# ----------------------------------------------------------------------------
+
+
+def random_actions(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Uniform actions: motors in [-1, 1], thrusters in [0, 1] (kinetix's ranges)."""
+    a = jax.random.uniform(key, (*shape, ACTION_DIM), minval=-1.0, maxval=1.0)
+    return a.at[..., NUM_MOTOR_BINDINGS:].set(jnp.abs(a[..., NUM_MOTOR_BINDINGS:]))
+
+
+def make_random_rollout(task: KinetixTask, num_envs: int, num_steps: int):
+    """Jittable ``rollout(key) -> summary`` stepping ``num_envs`` envs ``num_steps`` times [K-13]."""
+    num_envs = _check_int("num_envs", num_envs, 1)
+    num_steps = _check_int("num_steps", num_steps, 1)
+
+    def rollout(key):
+        key, rkey = jax.random.split(key)
+        _, state = task.reset_batch(rkey, num_envs)
+
+        def body(carry, _):
+            state, key, dones, solved, ret = carry
+            key, akey, skey = jax.random.split(key, 3)
+            action = random_actions(akey, (num_envs,))
+            _, state, reward, done, info = task.step_batch(skey, state, action)
+            return (state, key, dones + done.sum(), solved + info["solved"].sum(), ret + reward.sum()), None
+
+        zero_i = jnp.zeros((), jnp.int32)
+        init = (state, key, zero_i, zero_i, jnp.zeros((), jnp.float32))
+        (state, _, dones, solved, ret), _ = jax.lax.scan(body, init, None, length=num_steps)
+        return {"episodes_done": dones, "episodes_solved": solved, "reward_sum": ret}
+
+    return rollout
+
+
+def bench_bare_env(
+    level: str,
+    num_envs: int = 64,
+    num_steps: int = 256,
+    seed: int = 0,
+    levels_dir: str | os.PathLike | None = None,
+    repeats: int = 1,
+) -> dict:
+    """Steps/s of the bare env under random actions, compile time apart [K-13].
+
+    One jitted ``lax.scan`` of ``num_steps`` batched steps over ``num_envs``
+    environments is lowered and compiled (timed as ``compile_s``), then run
+    ``repeats`` times; ``env_steps_per_s`` uses the fastest run.
+    """
+    _check_level_name(level)
+    num_envs = _check_int("num_envs", num_envs, 1)
+    num_steps = _check_int("num_steps", num_steps, 1)
+    seed = _check_int("seed", seed, 0, 2**32 - 1)
+    repeats = _check_int("repeats", repeats, 1)
+    task = make_env(level, levels_dir)
+    key = jax.random.key(seed)
+    t0 = time.perf_counter()
+    compiled = jax.jit(make_random_rollout(task, num_envs, num_steps)).lower(key).compile()
+    compile_s = time.perf_counter() - t0
+    run_times = []
+    out = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(compiled(key))
+        run_times.append(time.perf_counter() - t0)
+    best = min(run_times)
+    total = num_envs * num_steps
+    return {
+        "level": level,
+        "num_envs": num_envs,
+        "num_steps": num_steps,
+        "seed": seed,
+        "env_steps": total,
+        "compile_s": compile_s,
+        "run_s": best,
+        "run_s_all": run_times,
+        "env_steps_per_s": total / best,
+        "episodes_done": int(out["episodes_done"]),
+        "episodes_solved": int(out["episodes_solved"]),
+        "device": str(jax.devices()[0]),
+    }
