@@ -1,0 +1,117 @@
+"""Validation helpers of the JAX twin ([N-7]).
+
+Static arguments (H, A, T, schedule names, ...) are always checked. Array and
+scalar arguments are checked for shape at trace time and, when their values
+are concrete (not JAX tracers), for range and finiteness too. Traced values
+cannot be inspected inside ``jit``; the functions that accept them document
+the valid range and provide host-side ``check_*`` helpers instead. Nothing is
+clamped to make an out-of-range traced value valid.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softrtc.reference import _validate as _ref
+
+check_choice = _ref.check_choice
+check_int = _ref.check_int
+check_real = _ref.check_real
+
+
+def is_traced(value) -> bool:
+    """True when ``value`` (or any leaf of it) is a JAX tracer, i.e. not concrete."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(value))
+
+
+def int_value(name: str, value, lo: int | None = None, hi: int | None = None, *,
+              dtype=jnp.int32) -> jax.Array:
+    """A scalar integer argument that may be traced ([N-7]).
+
+    Concrete values must be integers in ``[lo, hi]`` (Python ints, NumPy or JAX
+    integer scalars; floats and booleans are rejected). Traced values must have
+    an integer dtype and scalar shape; their range is the caller's duty.
+    """
+    if is_traced(value):
+        if jnp.ndim(value) != 0 or not jnp.issubdtype(jnp.result_type(value), jnp.integer):
+            raise ValueError(f"{name} must be a scalar integer, got {jnp.result_type(value)} "
+                             f"of shape {jnp.shape(value)}")
+        return jnp.asarray(value, dtype)
+    if isinstance(value, (jax.Array, np.ndarray)):
+        if value.ndim != 0 or not np.issubdtype(value.dtype, np.integer):
+            raise ValueError(f"{name} must be a scalar integer{_ref._range(lo, hi)}, got {value!r}")
+        value = int(value)
+    return jnp.asarray(check_int(name, value, lo, hi), dtype)
+
+
+def real_value(name: str, value, lo: float | None = None, hi: float | None = None,
+               lo_open: bool = False, hi_open: bool = False) -> jax.Array:
+    """A scalar real argument that may be traced; concrete values are range-checked ([N-7])."""
+    if is_traced(value):
+        if jnp.ndim(value) != 0:
+            raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(value)}")
+        return jnp.asarray(value, jnp.float32)
+    if isinstance(value, (jax.Array, np.ndarray)):
+        if value.ndim != 0 or value.dtype == bool:
+            raise ValueError(f"{name} must be a finite real scalar, got {value!r}")
+        value = value.item()
+    if not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a finite real number, got {value!r}")
+    return jnp.asarray(check_real(name, value, lo, hi, lo_open, hi_open), jnp.float32)
+
+
+def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
+          lo: float | None = None, hi: float | None = None, dtype=jnp.float32) -> jax.Array:
+    """A float array argument ([N-7], [N-8]).
+
+    ``shape`` may contain ``None`` for a free dimension. The shape is checked
+    always; finiteness and the range ``[lo, hi]`` only when the value is concrete.
+    """
+    if not is_traced(value):
+        if isinstance(value, (bool, np.bool_)) or (hasattr(value, "dtype") and value.dtype == bool):
+            raise ValueError(f"{name} must be a numeric array, got a boolean")
+        try:
+            value = jnp.asarray(value, dtype)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
+    else:
+        value = jnp.asarray(value, dtype)
+    if ndim is not None and value.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {list(value.shape)}")
+    if shape is not None:
+        if value.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, value.shape)):
+            want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+            raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
+    if not is_traced(value) and value.size:
+        v = np.asarray(value)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
+        if lo is not None and v.min() < lo:
+            raise ValueError(f"{name} values must lie in [{lo}, {hi}], got min {v.min()}")
+        if hi is not None and v.max() > hi:
+            raise ValueError(f"{name} values must lie in [{lo}, {hi}], got max {v.max()}")
+    return value
+
+
+def int_array(name: str, value, shape: tuple | None = None, lo: int | None = None,
+              hi: int | None = None) -> jax.Array:
+    """An integer array argument (e.g. per-example delays); range-checked when concrete ([N-7])."""
+    if not is_traced(value):
+        v = np.asarray(value)
+        if v.dtype == bool or not np.issubdtype(v.dtype, np.integer):
+            raise ValueError(f"{name} must be an integer array, got dtype {v.dtype}")
+        if v.size and ((lo is not None and v.min() < lo) or (hi is not None and v.max() > hi)):
+            raise ValueError(f"{name} entries must be integers{_ref._range(lo, hi)}, "
+                             f"got range [{v.min()}, {v.max()}]")
+    elif not jnp.issubdtype(jnp.result_type(value), jnp.integer):
+        raise ValueError(f"{name} must be an integer array, got dtype {jnp.result_type(value)}")
+    value = jnp.asarray(value, jnp.int32)
+    if shape is not None:
+        if value.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, value.shape)):
+            want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+            raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
+    return value

@@ -1,0 +1,113 @@
+"""Endpoint rules e(d) in JAX (spec chapter E, 01-weights.md); twin of ``softrtc.reference.endpoints``.
+
+A rule is a pytree: its ``kind`` is static (part of the tree structure), its
+parameters ``lam`` (float32), ``h_max`` and ``length`` (int32) are leaves, so
+one compiled function serves every delay *and* every parameter value of a
+rule kind ([E-1]). The delay ``d`` may be traced as well.
+
+>>> import jax.numpy as jnp
+>>> [int(endpoint(delay_scaled(2.0, 5), d)) for d in range(6)]
+[0, 2, 4, 5, 5, 5]
+
+Exactness of the delay-scaled ceiling ([E-2]): ``ceil(lam * d)`` is computed
+in float32. For ``lam`` a multiple of 1/4 (the values the conformance vectors
+use) and ``lam * d < 2**22`` the product is exactly representable, so the
+ceiling equals the reference's exact rational ceiling. For other ``lam`` the
+float32 value of ``lam`` is itself a rounding of the caller's number; use
+multiples of 1/4 (or build the rule from a float32-exact value).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from softrtc.reference import endpoints as _ref
+
+from . import _validate as v
+
+RULES = _ref.RULES
+MAX_WINDOW = _ref.MAX_WINDOW
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class EndpointRule:
+    """An endpoint rule ([E-1]) as a pytree: static ``kind``, traced parameters.
+
+    Unused parameters are 0, so every rule of a kind has the same tree
+    structure (and the same compiled code). Build with :func:`delay_scaled`,
+    :func:`offset`, :func:`fixed`, :func:`hard` or :func:`from_reference`.
+    """
+
+    lam: jax.Array
+    h_max: jax.Array
+    length: jax.Array
+    kind: str = dataclasses.field(metadata=dict(static=True), default="hard")
+
+    def bound(self):
+        """Largest endpoint over all d: h_max, h, or None for ``hard`` (bounded by d)."""
+        if self.kind in ("delay_scaled", "offset"):
+            return self.h_max
+        if self.kind == "fixed":
+            return self.length
+        return None
+
+
+def _rule(kind, lam=0.0, h_max=0, length=0) -> EndpointRule:
+    return EndpointRule(lam=jnp.asarray(lam, jnp.float32), h_max=jnp.asarray(h_max, jnp.int32),
+                        length=jnp.asarray(length, jnp.int32), kind=kind)
+
+
+def delay_scaled(lam, h_max) -> EndpointRule:
+    """[E-2] e(d) = min(ceil(lam d), h_max); lam in [0, 4096], h_max integer in [0, 4096] ([E-1])."""
+    return _rule("delay_scaled", lam=v.real_value("lam", lam, 0.0, float(MAX_WINDOW)),
+                 h_max=v.int_value("h_max", h_max, 0, MAX_WINDOW))
+
+
+def offset(length, h_max) -> EndpointRule:
+    """[E-3] e(d) = min(d + L, h_max) for d > 0; L, h_max integers in [0, 4096] ([E-1])."""
+    return _rule("offset", length=v.int_value("length", length, 0, MAX_WINDOW),
+                 h_max=v.int_value("h_max", h_max, 0, MAX_WINDOW))
+
+
+def fixed(h) -> EndpointRule:
+    """[E-4] e(d) = h for d > 0; h integer in [0, 4096] ([E-1])."""
+    return _rule("fixed", length=v.int_value("h", h, 0, MAX_WINDOW))
+
+
+def hard() -> EndpointRule:
+    """[E-5] e(d) = d (Hard training-time RTC)."""
+    return _rule("hard")
+
+
+def from_reference(rule: _ref.EndpointRule) -> EndpointRule:
+    """The JAX rule with the parameters of a (validated) reference rule ([E-1])."""
+    if isinstance(rule, EndpointRule):
+        return rule
+    if not isinstance(rule, _ref.EndpointRule):
+        raise ValueError(f"rule must be an EndpointRule, got {type(rule).__name__}")
+    return _rule(rule.kind, lam=rule.lam or 0.0, h_max=rule.h_max or 0, length=rule.length or 0)
+
+
+def endpoint(rule: EndpointRule, d) -> jax.Array:
+    """Raw endpoint e(d) as an int32 scalar ([E-1]..[E-6]); ``d`` may be traced.
+
+    [E-6] every rule gives e(0) = 0. ``d`` must be an integer in [0, 4096]
+    (checked when concrete; traced values outside give undefined results).
+    The delay-scaled ceiling is exact for lam a multiple of 1/4 (module doc).
+    Works under ``vmap`` over ``d`` and over the rule's parameters.
+    """
+    rule = from_reference(rule)
+    d = v.int_value("d", d, 0, MAX_WINDOW)
+    if rule.kind == "delay_scaled":
+        # ceil(lam * 0) = 0 already gives [E-6]; the product is exact for lam in (1/4)Z.
+        raw = jnp.ceil(rule.lam * d.astype(jnp.float32)).astype(jnp.int32)
+        return jnp.minimum(raw, rule.h_max)
+    if rule.kind == "offset":
+        return jnp.where(d == 0, 0, jnp.minimum(d + rule.length, rule.h_max))
+    if rule.kind == "fixed":
+        return jnp.where(d == 0, 0, rule.length)
+    return d
