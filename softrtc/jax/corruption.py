@@ -1,0 +1,39 @@
+"""Weighted corruption in JAX (spec chapter C, 02-training.md); twin of ``softrtc.reference.corruption``.
+
+Batched by broadcasting: ``weights [..., H]``, ``tau [...]``, ``actions`` and
+``noise [..., H, A]`` with the same leading dims (or use ``vmap``).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from . import _validate as v
+
+
+def token_times(weights, tau) -> jax.Array:
+    """tau_j = w_j + (1 - w_j) tau ([C-1]); weights [..., H], tau [...] -> [..., H]."""
+    w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.ndim < 1:
+        raise ValueError(f"weights must have shape [..., H], got {list(w.shape)}")
+    tau = v.array("tau", tau, lo=0.0, hi=1.0)
+    return w + (1.0 - w) * tau[..., None]
+
+
+def corrupt(actions, noise, weights, tau) -> tuple[jax.Array, jax.Array]:
+    """Corrupted chunk x = tau_j A + (1 - tau_j) eps and times tau_j ([C-1], [C-2], [C-3]).
+
+    actions, noise [..., H, A]; weights [..., H] in [0, 1]; tau [...] in [0, 1].
+    With w = 0 the result is bitwise ``tau A + (1 - tau) eps`` ([C-3]).
+    """
+    a = v.array("actions", actions)
+    if a.ndim < 2:
+        raise ValueError(f"actions must have shape [..., H, A], got {list(a.shape)}")
+    n = v.array("noise", noise, shape=a.shape)
+    w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.shape != a.shape[:-1]:
+        raise ValueError(f"weights must have shape {list(a.shape[:-1])}, got {list(w.shape)}")
+    tj = token_times(w, tau)
+    x = tj[..., None] * a + (1.0 - tj[..., None]) * n
+    return x, tj

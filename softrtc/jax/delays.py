@@ -1,0 +1,79 @@
+"""Training delay distributions in JAX (spec chapter D, 02-training.md); twin of ``softrtc.reference.delays``.
+
+The table length ``d_max - d_min + 1`` is a shape, so ``d_min`` and ``d_max``
+are static Python ints for :func:`delay_probs`; ``decay`` may be traced.
+Sampling is the inverse CDF of a uniform ``u`` ([D-3]) and accepts any shape
+of ``u`` (one draw per element), a traced ``d_min`` and a traced table.
+
+Float32 note ([N-8]): the CDF is accumulated in float32, so a ``u`` within
+float32 rounding (about 1e-7) of a CDF entry may fall on the other side than
+in the float64 reference. Tables whose CDF entries are dyadic (e.g. uniform
+over 1, 2, 4 or 8 delays) agree for every ``u``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from softrtc.reference import delays as _ref
+
+from . import _validate as v
+
+DISTRIBUTIONS = _ref.DISTRIBUTIONS
+MAX_DELAY = _ref.MAX_DELAY
+
+
+def delay_probs(dist: str, d_min: int, d_max: int, decay=1.0) -> jax.Array:
+    """Probability table p[k] = P(d = d_min + k), shape [d_max - d_min + 1] ([D-1], [D-2]).
+
+    ``dist``, ``d_min``, ``d_max`` are static; ``decay`` in [0, 64] may be traced.
+    """
+    v.check_choice("dist", dist, DISTRIBUTIONS)
+    d_min = v.check_int("d_min", d_min, 0, MAX_DELAY)
+    d_max = v.check_int("d_max", d_max, d_min, MAX_DELAY)
+    n = d_max - d_min + 1
+    if dist == "uniform":
+        return jnp.full((n,), 1.0 / n, jnp.float32)
+    decay = v.real_value("decay", decay, 0.0, 64.0)
+    # logits start at 0 and decrease, so exp never overflows ([D-2]).
+    p = jnp.exp(-decay * jnp.arange(n, dtype=jnp.float32))
+    return p / jnp.sum(p)
+
+
+def delay_cdf(probs) -> jax.Array:
+    """Cumulative sums of a table [n], last entry exactly 1 ([D-3]).
+
+    A concrete table must be non-empty, in [0, 1] and sum to 1 within 1e-6.
+    """
+    p = v.array("probs", probs, ndim=1, lo=0.0, hi=1.0)
+    if p.shape[0] == 0:
+        raise ValueError("probs must be a non-empty table summing to 1, got an empty table")
+    if not v.is_traced(p) and abs(float(jnp.sum(p)) - 1.0) > 1e-6:
+        raise ValueError(f"probs must be a non-empty table summing to 1, got sum {float(jnp.sum(p))}")
+    return jnp.cumsum(p).at[-1].set(1.0)
+
+
+def sample_delay(probs, d_min, u) -> jax.Array:
+    """Inverse-CDF draw(s) d = d_min + #{k : cdf[k] <= u} ([D-3]), int32 of u's shape.
+
+    ``u`` in [0, 1) (any shape, checked when concrete); ``d_min`` may be traced.
+    """
+    c = delay_cdf(probs)
+    d_min = v.int_value("d_min", d_min, 0, MAX_DELAY)
+    u = v.array("u", u, lo=0.0)
+    if not v.is_traced(u) and u.size and float(jnp.max(u)) >= 1.0:
+        raise ValueError(f"u must lie in [0, 1), got max {float(jnp.max(u))}")
+    return d_min + jnp.sum(c <= u[..., None], axis=-1).astype(jnp.int32)
+
+
+def sample_delays(key, probs, d_min, shape=()) -> jax.Array:
+    """Delays of the given static ``shape`` from a PRNG key ([D-3], [D-4], [N-9]).
+
+    Draws ``u = jax.random.uniform(key, shape)`` in [0, 1) and applies
+    :func:`sample_delay`, so a caller holding the same ``u`` gets the same d.
+    """
+    if isinstance(shape, int):
+        shape = (shape,)
+    shape = tuple(v.check_int("shape entry", s, 0) for s in shape)
+    return sample_delay(probs, d_min, jax.random.uniform(key, shape, jnp.float32))

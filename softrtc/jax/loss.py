@@ -1,0 +1,60 @@
+"""Weighted flow-matching loss in JAX (spec chapter L, 02-training.md); twin of ``softrtc.reference.loss``.
+
+Per-example functions broadcast over leading batch dims; :func:`batch_loss`
+is the unweighted batch mean ([L-3]). Float32 note: ``eta = 1e-8`` vanishes
+next to ``sum_j (1 - w_j) >= 1`` in float32, it only matters when every token
+is clamped (then the loss is exactly 0, [L-2]).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from . import _validate as v
+from .corruption import corrupt
+
+ETA = 1e-8
+
+
+def token_errors(pred, actions, noise) -> jax.Array:
+    """l_j = sum_a (v - (A - eps))^2 ([L-1]); [..., H, A] -> [..., H]."""
+    p = v.array("pred", pred)
+    if p.ndim < 2:
+        raise ValueError(f"pred must have shape [..., H, A], got {list(p.shape)}")
+    a = v.array("actions", actions, shape=p.shape)
+    n = v.array("noise", noise, shape=p.shape)
+    return jnp.sum((p - (a - n)) ** 2, axis=-1)
+
+
+def flow_matching_loss(pred, actions, noise, weights, eta=ETA) -> jax.Array:
+    """Per-example loss sum_j (1 - w_j) l_j / (sum_j (1 - w_j) + eta) ([L-2], [L-4]); shape [...]."""
+    l = token_errors(pred, actions, noise)
+    w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.shape != l.shape:
+        raise ValueError(f"weights must have shape {list(l.shape)}, got {list(w.shape)}")
+    eta = v.real_value("eta", eta, 0.0, 1.0, lo_open=True)
+    m = 1.0 - w
+    return jnp.sum(m * l, axis=-1) / (jnp.sum(m, axis=-1) + eta)
+
+
+def batch_loss(preds, actions, noise, weights, eta=ETA) -> jax.Array:
+    """Unweighted mean of per-example losses ([L-3]); arrays [B, H, A], weights [B, H], B >= 1."""
+    p = v.array("preds", preds, ndim=3)
+    if p.shape[0] == 0:
+        raise ValueError("preds must have batch size >= 1, got 0")
+    return jnp.mean(flow_matching_loss(p, actions, noise, weights, eta))
+
+
+def rtc_loss(velocity_fn, obs, actions, noise, weights, tau, eta=ETA) -> jax.Array:
+    """Batch training loss of training-time RTC ([C-1], [C-2], [L-1]..[L-3]).
+
+    Corrupts ``actions [B, H, A]`` with ``noise``, per-example ``weights [B, H]``
+    and flow times ``tau [B]``, evaluates ``velocity_fn(obs [B, O], x [B, H, A],
+    t [B, H]) -> v [B, H, A]`` at the per-token times, and returns the batch mean.
+    """
+    if not callable(velocity_fn):
+        raise ValueError("velocity_fn must be callable as velocity_fn(obs, x, t) -> v [B, H, A]")
+    x, tj = corrupt(actions, noise, weights, tau)
+    pred = velocity_fn(obs, x, tj)
+    return batch_loss(pred, actions, noise, weights, eta)

@@ -1,0 +1,228 @@
+"""Euler samplers in JAX: naive and training-time RTC (spec chapter S, 03-inference.md).
+
+Twin of ``softrtc.reference.sampler``. Samplers act on a **batch**:
+
+* ``obs [B, O]``, ``noise [B, H, A]`` (x^0 = eps), ``prior [B, H, A]``;
+* ``weights [H]`` (shared by the batch) or ``[B, H]`` (per example, e.g. one
+  delay per example);
+* ``velocity_fn(obs [B, O], x [B, H, A], t [B, H]) -> v [B, H, A]``, batched
+  like the flow policy (``policy.__call__``) or the JAX reference field
+  (:class:`softrtc.jax.velocity.ReferenceVelocityField`). For one example,
+  add a batch dim of 1.
+
+Two paths compute the same chunks:
+
+* straightforward (``naive_sample``, ``rtc_sample``): calls ``velocity_fn``
+  with per-token times; this is the check;
+* conditioned (``naive_sample_conditioned``, ``rtc_sample_conditioned``): for a
+  ``model`` with ``time_conditioning(t)`` and ``apply_conditioned(obs, x,
+  cond)`` (the flow policy, or the reference field). The blended times
+  t~^k = w + (1 - w) t_k depend on the weights only ([S-3]), never on obs or
+  state, so the time conditioning of all T steps is computed once, as one
+  table ``model.time_conditioning(t~ [T, b, H])``, instead of once per step
+  and batch element. A per-delay table (:func:`conditioning_table`) goes
+  further: it is built once for every d = 0 .. H and indexed by a traced d.
+
+The loop over the static T is unrolled by default (faster on CPU for the
+small T of RTC, e.g. T = 5); ``unroll=False`` uses ``lax.fori_loop``, whose
+compile time does not grow with T.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from . import _validate as v
+
+MAX_STEPS = 1 << 16
+
+
+def euler_times(num_steps: int) -> jax.Array:
+    """t_k = k / T, k = 0 .. T-1, float32 ([S-1])."""
+    T = v.check_int("num_steps", num_steps, 1, MAX_STEPS)
+    return jnp.arange(T, dtype=jnp.float32) / T
+
+
+def blend(x, prior, weights) -> jax.Array:
+    """x~ = w Y + (1 - w) x token-wise ([S-3]); x, prior [..., H, A], weights broadcastable to [..., H]."""
+    x = v.array("x", x)
+    y = v.array("prior", prior, shape=x.shape)
+    w = v.array("weights", weights, lo=0.0, hi=1.0)[..., None]
+    return w * y + (1.0 - w) * x
+
+
+def blend_time(t, weights) -> jax.Array:
+    """t~_j = w_j + (1 - w_j) t ([S-3]); t a scalar or broadcastable to weights' leading dims."""
+    w = v.array("weights", weights, lo=0.0, hi=1.0)
+    t = jnp.asarray(t, jnp.float32)
+    return w + (1.0 - w) * t[..., None] if t.ndim else w + (1.0 - w) * t
+
+
+def check_batch(obs, noise, prior=None, weights=None, num_steps=None):
+    """Validate sampler inputs ([N-7]); returns (obs, noise, prior, weights, T) as float32 arrays."""
+    x = v.array("noise", noise, ndim=3)
+    B, H, _ = x.shape
+    if B < 1:
+        raise ValueError("noise must have batch size B >= 1, got 0")
+    obs = v.array("obs", obs, ndim=2)
+    if obs.shape[0] != B:
+        raise ValueError(f"obs must have shape [B={B}, O], got {list(obs.shape)}")
+    y = None if prior is None else v.array("prior", prior, shape=x.shape)
+    w = None
+    if weights is not None:
+        w = v.array("weights", weights, lo=0.0, hi=1.0)
+        if w.shape not in ((H,), (B, H)):
+            raise ValueError(f"weights must have shape [H={H}] or [B={B}, H={H}], got {list(w.shape)}")
+    T = None if num_steps is None else v.check_int("num_steps", num_steps, 1, MAX_STEPS)
+    return obs, x, y, w, T
+
+
+def _check_fn(name, fn):
+    if not callable(fn):
+        raise ValueError(f"{name} must be callable as {name}(obs [B, O], x [B, H, A], t [B, H]) -> v [B, H, A]")
+
+
+def _check_model(model):
+    if not (callable(getattr(model, "time_conditioning", None))
+            and callable(getattr(model, "apply_conditioned", None))):
+        raise ValueError("model must provide time_conditioning(t) and apply_conditioned(obs, x, cond)")
+
+
+def _loop(step, x, T, unroll):
+    """x <- step(k, x) for k = 0 .. T-1; Python-unrolled or a fori_loop."""
+    if unroll:
+        for k in range(T):
+            x = step(k, x)
+        return x
+    return jax.lax.fori_loop(0, T, step, x)
+
+
+def _at(tree, k):
+    return jax.tree_util.tree_map(lambda a: a[k], tree)
+
+
+# ----------------------------------------------------------------------- straightforward path
+
+
+def naive_sample(velocity_fn, obs, noise, num_steps: int, *, unroll: bool = True) -> jax.Array:
+    """Naive Euler sampler ([S-1], [S-2]): x += v(obs, x, t_k 1) / T; returns x^T [B, H, A]."""
+    _check_fn("velocity_fn", velocity_fn)
+    obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    times = euler_times(T)
+
+    def step(k, x):
+        tv = jnp.full(x.shape[:2], times[k])
+        return x + velocity_fn(obs, x, tv) / T
+
+    return _loop(step, x, T, unroll)
+
+
+def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unroll: bool = True) -> jax.Array:
+    """Training-time RTC sampler (Algorithm 1, [S-3], [S-4], [S-5]); returns x^T without a final blend.
+
+    With w = 0 (e.g. d = 0) it is bitwise :func:`naive_sample` ([S-7]).
+    """
+    _check_fn("velocity_fn", velocity_fn)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    times = euler_times(T)
+    wb = jnp.broadcast_to(w, x.shape[:2])
+    wx = wb[..., None]
+
+    def step(k, x):
+        xb = wx * y + (1.0 - wx) * x
+        tb = wb + (1.0 - wb) * times[k]
+        return xb + velocity_fn(obs, xb, tb) / T
+
+    return _loop(step, x, T, unroll)
+
+
+# ----------------------------------------------------------------------- conditioned fast path
+
+
+def rtc_time_table(weights, num_steps: int) -> jax.Array:
+    """Blended times t~^k = w + (1 - w) t_k for all steps ([S-3]): weights [..., H] -> [T, ..., H]."""
+    w = v.array("weights", weights, lo=0.0, hi=1.0)
+    times = euler_times(num_steps)
+    t = times.reshape((-1,) + (1,) * w.ndim)
+    return w + (1.0 - w) * t
+
+
+def naive_conditioning(model, num_steps: int):
+    """Time conditioning of the naive sampler: ``model.time_conditioning(t_k)`` for t [T, 1, 1] ([S-2])."""
+    _check_model(model)
+    return model.time_conditioning(euler_times(num_steps)[:, None, None])
+
+
+def rtc_conditioning(model, weights, num_steps: int):
+    """Time conditioning of every RTC step, ``model.time_conditioning(t~ [T, b, H])`` ([S-3]).
+
+    ``weights [H]`` gives b = 1 (shared by the batch), ``[B, H]`` gives b = B.
+    """
+    _check_model(model)
+    w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.ndim == 1:
+        w = w[None]
+    if w.ndim != 2:
+        raise ValueError(f"weights must have shape [H] or [B, H], got {list(w.shape)}")
+    return model.time_conditioning(rtc_time_table(w, num_steps))
+
+
+def conditioning_table(model, weight_table, num_steps: int):
+    """Per-delay conditioning table: leaves [D, T, 1, ...] for a weight table [D, H] ([S-3], [W-7]).
+
+    Build it once (e.g. from ``weights.weight_table`` or ``methods.method_weight_table``)
+    and pick a delay with :func:`select_conditioning`; it depends on the model's
+    parameters and the weights only.
+    """
+    _check_model(model)
+    wt = v.array("weight_table", weight_table, ndim=2, lo=0.0, hi=1.0)
+    return model.time_conditioning(rtc_time_table(wt[:, None, :], num_steps))
+
+
+def select_conditioning(table, d):
+    """Rows of a :func:`conditioning_table` for delay ``d``: a scalar gives leaves [T, 1, ...],
+    per-example delays [B] give [T, B, ...]. Traced ``d`` must lie in [0, D-1]."""
+    d = jnp.asarray(d)
+    if not jnp.issubdtype(d.dtype, jnp.integer) or d.ndim > 1:
+        raise ValueError(f"d must be an integer scalar or a vector [B], got {d.dtype} of shape {list(d.shape)}")
+    if d.ndim == 0:
+        return _at(table, d)
+    return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a[d][:, :, 0], 0, 1), table)
+
+
+def naive_sample_conditioned(model, obs, noise, num_steps: int, *, cond=None,
+                             unroll: bool = True) -> jax.Array:
+    """:func:`naive_sample` through ``model.apply_conditioned`` ([S-2]).
+
+    ``cond`` (optional) is :func:`naive_conditioning`; computed here if omitted.
+    """
+    _check_model(model)
+    obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    cond = naive_conditioning(model, T) if cond is None else cond
+
+    def step(k, x):
+        return x + model.apply_conditioned(obs, x, _at(cond, k)) / T
+
+    return _loop(step, x, T, unroll)
+
+
+def rtc_sample_conditioned(model, obs, noise, prior, weights, num_steps: int, *, cond=None,
+                           unroll: bool = True) -> jax.Array:
+    """:func:`rtc_sample` through ``model.apply_conditioned`` ([S-3]..[S-5]).
+
+    ``cond`` (optional) is the conditioning of these weights' blended times:
+    :func:`rtc_conditioning` or a :func:`select_conditioning` row of a
+    per-delay table; computed here from ``weights`` if omitted. The caller
+    guarantees that ``cond`` belongs to ``weights``.
+    """
+    _check_model(model)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    cond = rtc_conditioning(model, w, T) if cond is None else cond
+    wx = jnp.broadcast_to(w, x.shape[:2])[..., None]
+
+    def step(k, x):
+        xb = wx * y + (1.0 - wx) * x
+        return xb + model.apply_conditioned(obs, xb, _at(cond, k)) / T
+
+    return _loop(step, x, T, unroll)

@@ -1,0 +1,119 @@
+"""The reference velocity field of [F-1] in JAX; twin of ``softrtc.reference.velocity``.
+
+Same parameters dict (W1, Wt, Wo, b1, W2, b2) as the NumPy field, cast to
+float32. The field is a pytree, so it can be passed to jitted functions as an
+argument. It acts on a single example (obs [O], x [H, A], t [H]) or on a
+batch (obs [B, O], x [B, H, A], t [B, H]); a batch is what the samplers use.
+
+It also offers the fast-path interface of the flow policy:
+``time_conditioning(t)`` computes the time-dependent part of the hidden
+pre-activation, ``vec(phi(t)) Wt``, and ``apply_conditioned(obs, x, cond)``
+evaluates the field from it, so ``apply_conditioned(obs, x,
+time_conditioning(t)) == field(obs, x, t)`` up to float rounding.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from softrtc.reference import velocity as _ref
+
+from . import _validate as v
+
+PARAM_NAMES = _ref.PARAM_NAMES
+
+
+def time_features(t) -> jax.Array:
+    """phi(t): [..., H] -> [..., H, 3] ([F-1])."""
+    t = jnp.asarray(t, jnp.float32)
+    return jnp.stack([t, jnp.sin(jnp.pi * t), jnp.cos(jnp.pi * t)], axis=-1)
+
+
+@jax.tree_util.register_pytree_node_class
+class ReferenceVelocityField:
+    """v(obs, x, t) of [F-1] with a hand-written VJP ([F-2]), in float32."""
+
+    def __init__(self, params: dict):
+        if isinstance(params, _ref.ReferenceVelocityField):
+            params = params.params
+        missing = [k for k in PARAM_NAMES if k not in params]
+        if missing:
+            raise ValueError(f"params is missing {missing}; expected keys {PARAM_NAMES}")
+        p = {k: jnp.asarray(params[k], jnp.float32) for k in PARAM_NAMES}
+        if p["W1"].ndim != 2 or p["Wt"].ndim != 2 or p["Wt"].shape[0] % 3:
+            raise ValueError("params['W1'] must be [H*A, K] and params['Wt'] [3*H, K]")
+        HA, K = p["W1"].shape
+        H = p["Wt"].shape[0] // 3
+        if H == 0 or HA % H or p["Wt"].shape[1] != K or p["Wo"].ndim != 2 or p["Wo"].shape[1] != K \
+                or p["b1"].shape != (K,) or p["W2"].shape != (K, HA) or p["b2"].shape != (HA,):
+            raise ValueError(f"params have inconsistent shapes: "
+                             f"{ {k: list(a.shape) for k, a in p.items()} }")
+        self.params = p
+        self.horizon, self.action_dim, self.obs_dim, self.hidden = H, HA // H, p["Wo"].shape[0], K
+
+    @classmethod
+    def from_reference(cls, field: _ref.ReferenceVelocityField) -> "ReferenceVelocityField":
+        """The JAX twin of a NumPy reference field (same weights) ([F-3])."""
+        if not isinstance(field, _ref.ReferenceVelocityField):
+            raise ValueError(f"field must be a reference ReferenceVelocityField, got {type(field).__name__}")
+        return cls(field.params)
+
+    # Pytree protocol: parameters are leaves, so jit sees them as arguments, not constants.
+    def tree_flatten(self):
+        return tuple(self.params[k] for k in PARAM_NAMES), None
+
+    @classmethod
+    def tree_unflatten(cls, aux, leaves):
+        obj = object.__new__(cls)
+        obj.params = dict(zip(PARAM_NAMES, leaves))
+        HA, K = obj.params["W1"].shape
+        H = obj.params["Wt"].shape[0] // 3
+        obj.horizon, obj.action_dim, obj.obs_dim, obj.hidden = H, HA // H, obj.params["Wo"].shape[0], K
+        return obj
+
+    def _check(self, obs, x):
+        H, A, O = self.horizon, self.action_dim, self.obs_dim
+        x = v.array("x", x)
+        if x.ndim not in (2, 3) or x.shape[-2:] != (H, A):
+            raise ValueError(f"x must have shape [H, A] = [{H}, {A}] or [B, {H}, {A}], got {list(x.shape)}")
+        obs = v.array("obs", obs, shape=x.shape[:-2] + (O,))
+        return obs, x
+
+    def time_conditioning(self, t) -> jax.Array:
+        """Time part of the hidden pre-activation, vec(phi(t)) Wt: [..., H] or [..., 1] -> [..., K].
+
+        A last dim of 1 means one time shared by all tokens.
+        """
+        t = v.array("t", t, lo=0.0, hi=1.0)
+        if t.ndim < 1 or t.shape[-1] not in (1, self.horizon):
+            raise ValueError(f"t must have shape [..., {self.horizon}] or [..., 1], got {list(t.shape)}")
+        t = jnp.broadcast_to(t, t.shape[:-1] + (self.horizon,))
+        phi = time_features(t).reshape(t.shape[:-1] + (3 * self.horizon,))
+        return phi @ self.params["Wt"]
+
+    def _hidden(self, obs, x, cond):
+        p = self.params
+        pre = x.reshape(x.shape[:-2] + (-1,)) @ p["W1"] + cond + obs @ p["Wo"] + p["b1"]
+        return jnp.tanh(pre)
+
+    def apply_conditioned(self, obs, x, cond) -> jax.Array:
+        """Velocity from a precomputed ``cond = time_conditioning(t)``; cond [K] or [b, K], b in {1, B}."""
+        obs, x = self._check(obs, x)
+        h = self._hidden(obs, x, jnp.asarray(cond, jnp.float32))
+        return (h @ self.params["W2"] + self.params["b2"]).reshape(x.shape)
+
+    def __call__(self, obs, x, t) -> jax.Array:
+        """Velocity [..., H, A] at x [..., H, A] with per-token time t [..., H] ([F-1])."""
+        obs, x = self._check(obs, x)
+        t = v.array("t", t, shape=x.shape[:-1], lo=0.0, hi=1.0)
+        return self.apply_conditioned(obs, x, self.time_conditioning(t))
+
+    def vjp(self, obs, x, t, cotangent) -> jax.Array:
+        """Hand-written (dv/dx)^T cotangent, shape of x ([F-2])."""
+        obs, x = self._check(obs, x)
+        t = v.array("t", t, shape=x.shape[:-1], lo=0.0, hi=1.0)
+        g = v.array("cotangent", cotangent, shape=x.shape)
+        h = self._hidden(obs, x, self.time_conditioning(t))
+        dh = (g.reshape(g.shape[:-2] + (-1,)) @ self.params["W2"].T) * (1.0 - h * h)
+        return (dh @ self.params["W1"].T).reshape(x.shape)
