@@ -13,7 +13,7 @@ Requirement ids cited below refer to ``spec/10-arm.md``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import pymunk
@@ -132,6 +132,11 @@ def _validate_config(cfg: ArmConfig) -> None:
         raise ValueError("config.joint_low must be < config.joint_high for every joint")
     if len(cfg.object_sizes) != NUM_OBJECTS or len(cfg.object_masses) != NUM_OBJECTS:
         raise ValueError(f"config.object_sizes and config.object_masses must have {NUM_OBJECTS} entries")
+    for name in ("link_masses", "object_masses"):
+        if any(not (isinstance(m, (int, float)) and math.isfinite(m) and m > 0) for m in getattr(cfg, name)):
+            raise ValueError(f"config.{name} must contain finite numbers > 0")
+    if any(not (w > 0 and h > 0) for w, h in cfg.object_sizes):
+        raise ValueError("config.object_sizes must contain (width, height) pairs > 0")
     lo, hi = cfg.object_x_range
     if not lo < hi:
         raise ValueError("config.object_x_range must satisfy low < high")
@@ -341,14 +346,21 @@ class ArmSortEnv:
         self._closed = close
 
         h = cfg.physics_dt
+        kp, vmax = cfg.motor_gain, cfg.motor_max_rate
+        targets = [float(x) for x in self._targets]
+        pairs = list(zip(sc.links, sc.motors, targets))
+        space = sc.space
+        # Plain floats here: this loop dominates the cost of an episode.
         for _ in range(cfg.substeps):
-            q, qd = self._joint_state()
-            for i, motor in enumerate(sc.motors):
-                rate = cfg.motor_gain * (self._targets[i] - q[i])
-                rate = max(-cfg.motor_max_rate, min(cfg.motor_max_rate, rate))
+            prev = -math.pi / 2
+            for body, motor, target in pairs:
+                angle = body.angle
+                rate = kp * (target - (angle - prev))
+                prev = angle
+                rate = vmax if rate > vmax else (-vmax if rate < -vmax else rate)
                 # pymunk's SimpleMotor drives b.w - a.w to -rate.
                 motor.rate = -rate
-            sc.space.step(h)
+            space.step(h)
         self._t += 1
         completed = self.completed()
         success = bool(all(completed))
@@ -393,10 +405,11 @@ class ArmSortEnv:
         # [A-9] pick the object whose surface is nearest the tip, within reach.
         sc = self._scene
         tip = tuple(self._ee_position())
-        best, best_d = -1, self.config.grasp_radius
+        best, best_d = -1, math.inf
         for i, (_, shape) in enumerate(sc.objects):
             d = shape.point_query(tip).distance
-            if d <= best_d:
+            # Strict < keeps the lowest index on ties.
+            if d <= self.config.grasp_radius and d < best_d:
                 best, best_d = i, d
         if best < 0:
             return
@@ -508,8 +521,3 @@ class ArmSortEnv:
                     ec="k")
         ax.set_aspect("equal")
         return ax
-
-
-def with_overrides(config: ArmConfig, **kwargs) -> ArmConfig:
-    """Copy of ``config`` with fields replaced (validated on env creation)."""
-    return replace(config, **kwargs)
