@@ -1,0 +1,167 @@
+"""The adapter interface between the conformance runner and an implementation ([CF-7]..[CF-12]).
+
+An adapter is any object (a module works) with a ``name`` string, an optional
+``time_convention`` ("data_at_1", the spec's, or "noise_at_1", [V-1]), an
+optional ``to_numpy(x)`` and any subset of the functions of :data:`INTERFACE`.
+Functions are called positionally, in the order listed there; a function the
+adapter lacks makes its cases *unsupported*, never failed ([CF-9]).
+
+Load one with :func:`load_adapter`: a built-in name (``reference``, ``jax``,
+``torch``, ``torch-flipped``), ``package.module[:ATTR]`` or
+``path/to/file.py[:ATTR]``. Without ``:ATTR`` the module's ``ADAPTER`` is used
+when present, else the module itself.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+TIME_CONVENTIONS = ("data_at_1", "noise_at_1")
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+BUILTIN = {
+    "reference": "softrtc.conformance.adapters.reference:ADAPTER",
+    "jax": "softrtc.conformance.adapters.jax:ADAPTER",
+    "torch": str(REPO_ROOT / "conformance" / "torch_port" / "adapter.py") + ":ADAPTER",
+    "torch-flipped": str(REPO_ROOT / "conformance" / "torch_port" / "adapter_flipped.py") + ":ADAPTER",
+}
+
+
+@dataclass(frozen=True)
+class Fn:
+    """One interface function: positional arguments, outputs and the [V-1] mapping roles.
+
+    kind: "value" (returns the single output), "tuple" (returns the outputs in
+    order), "dict" (returns a mapping with the output names), "sample" (returns
+    (chunk, trace) with trace a list of per-step dicts, or None).
+    time_args / time_out are flow times (t' = 1 - t under "noise_at_1");
+    vel_args / vel_out are velocities (u = -v).
+    """
+
+    args: tuple
+    outputs: tuple
+    kind: str = "value"
+    time_args: tuple = ()
+    vel_args: tuple = ()
+    time_out: tuple = ()
+    vel_out: tuple = ()
+    int_out: tuple = ()
+
+
+_S = ("chunk", "trace")
+INTERFACE: dict[str, Fn] = {
+    "endpoint": Fn(("rule", "d"), ("e",), int_out=("e",)),
+    "prefix_weights": Fn(("H", "d", "e", "schedule", "parametrization"), ("weights",)),
+    "weights": Fn(("H", "d", "window", "s"), ("weights",)),
+    "hard_weights": Fn(("H", "d"), ("weights",)),
+    "delay_probs": Fn(("dist", "d_min", "d_max", "decay"), ("probs",)),
+    "sample_delay": Fn(("probs", "d_min", "u"), ("d",), int_out=("d",)),
+    "corrupt": Fn(("actions", "noise", "weights", "tau"), ("x", "times"), "tuple",
+                  time_args=("tau",), time_out=("times",)),
+    "token_times": Fn(("weights", "t"), ("times",), time_args=("t",), time_out=("times",)),
+    "loss": Fn(("pred", "actions", "noise", "weights"), ("loss",), vel_args=("pred",)),
+    "batch_loss": Fn(("preds", "actions", "noise", "weights"), ("loss",), vel_args=("preds",)),
+    "velocity": Fn(("field", "obs", "x", "t"), ("velocity",), time_args=("t",), vel_out=("velocity",)),
+    "velocity_vjp": Fn(("field", "obs", "x", "t", "cotangent"), ("vjp",), time_args=("t",), vel_out=("vjp",)),
+    "naive_sample": Fn(("field", "obs", "noise", "T"), _S, "sample"),
+    "rtc_sample": Fn(("field", "obs", "noise", "prior", "weights", "T"), _S, "sample"),
+    "guided_sample": Fn(("field", "obs", "noise", "prior", "weights", "T", "max_guidance"), _S, "sample"),
+    "method_weights": Fn(("method", "H", "s", "d", "window"), ("weights",)),
+    "guidance_weights": Fn(("H", "s", "d", "variant"), ("weights",)),
+    "guidance_weight": Fn(("t", "max_guidance"), ("lam",), time_args=("t",)),
+    "shift_prior": Fn(("prev", "s"), ("prior",)),
+    "execute_chunks": Fn(("chunks", "delays", "s"), ("actions", "chunk_index", "token_index"), "dict",
+                         int_out=("chunk_index", "token_index")),
+    "difference_norm": Fn(("actions", "order"), ("value",)),
+    "action_delta": Fn(("actions",), ("value",)),
+    "action_jerk": Fn(("actions",), ("value",)),
+    "boundary_jump": Fn(("actions", "chunk_index"), ("value",)),
+    "bootstrap_interval": Fn(("values", "indices", "confidence"), ("interval",)),
+    "standard_error": Fn(("values",), ("value",)),
+}
+
+# Keys of a sampler trace step that are flow times or velocities ([V-1]); the
+# guidance pull-back "vjp" is taken through the denoiser x1, which both
+# conventions share, so it is not negated.
+TRACE_TIME_KEYS = ("time",)
+TRACE_VEL_KEYS = ("velocity", "guided_velocity")
+
+
+class AdapterError(Exception):
+    """An adapter could not be loaded or is malformed; the message is one line."""
+
+
+def _import_path(path: Path):
+    """Import a file; a file inside a package directory (with __init__.py) is imported
+    as ``dirname.stem`` so that its relative imports work."""
+    path = path.resolve()
+    if not path.is_file():
+        raise AdapterError(f"adapter file {path} does not exist")
+    if (path.parent / "__init__.py").is_file():
+        root, modname = str(path.parent.parent), f"{path.parent.name}.{path.stem}"
+    else:
+        root, modname = str(path.parent), path.stem
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    return importlib.import_module(modname)
+
+
+def load_adapter(spec: str):
+    """Adapter object for a built-in name, ``module[:ATTR]`` or ``file.py[:ATTR]`` ([CF-12]).
+
+    Raises AdapterError with a one-line message for anything that goes wrong.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise AdapterError("impl must be a non-empty string: a built-in name "
+                           f"{tuple(BUILTIN)}, module[:ATTR] or path/file.py[:ATTR]")
+    target = BUILTIN.get(spec, spec)
+    mod_part, attr = target.rsplit(":", 1) if ":" in target else (target, "")
+    try:
+        if mod_part.endswith(".py") or "/" in mod_part or "\\" in mod_part:
+            module = _import_path(Path(mod_part))
+        else:
+            module = importlib.import_module(mod_part)
+    except AdapterError:
+        raise
+    except Exception as exc:  # any import failure becomes one clear line
+        raise AdapterError(f"cannot import adapter module '{mod_part}' for impl '{spec}': "
+                           f"{type(exc).__name__}: {_first_line(exc)}") from None
+    if attr:
+        if not hasattr(module, attr):
+            raise AdapterError(f"adapter module '{mod_part}' has no attribute '{attr}'")
+        adapter = getattr(module, attr)
+    else:
+        adapter = getattr(module, "ADAPTER", module)
+    check_adapter(adapter)
+    return adapter
+
+
+def check_adapter(adapter) -> None:
+    """Check the adapter's attributes ([CF-8]); raise AdapterError naming what is wrong."""
+    name = getattr(adapter, "name", None)
+    if not isinstance(name, str) or not name:
+        raise AdapterError("adapter must have a non-empty string attribute 'name'")
+    tc = getattr(adapter, "time_convention", "data_at_1")
+    if tc not in TIME_CONVENTIONS:
+        raise AdapterError(f"adapter.time_convention must be one of {TIME_CONVENTIONS}, got {tc!r}")
+    for fname in INTERFACE:
+        fn = getattr(adapter, fname, None)
+        if fn is not None and not callable(fn):
+            raise AdapterError(f"adapter.{fname} must be callable or absent, got {type(fn).__name__}")
+    conv = getattr(adapter, "to_numpy", None)
+    if conv is not None and not callable(conv):
+        raise AdapterError("adapter.to_numpy must be callable or absent")
+
+
+def supported_functions(adapter) -> list[str]:
+    """Interface functions the adapter provides ([CF-9])."""
+    return [f for f in INTERFACE if callable(getattr(adapter, f, None))]
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else ""

@@ -1,0 +1,1 @@
+"""Built-in adapters of the conformance runner ([CF-12]): reference (NumPy) and jax."""

@@ -1,0 +1,482 @@
+"""Run the conformance vectors against an adapter and report per requirement id ([CF-13]..[CF-18]).
+
+    softrtc conformance run --impl NAME_OR_MODULE:ATTR [--report FILE] [--junit FILE] [--vectors DIR]
+
+Every case is one call of one interface function. A case passes when every
+expected number agrees within its tolerance: ``|got - want| <= abs + rel * |want|``
+elementwise, integers exactly ([CF-5]). Outputs of a "noise_at_1" adapter are
+mapped onto the spec (t = 1 - t', v = -u) before comparing ([CF-10], [V-1]).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import time
+import traceback
+import xml.etree.ElementTree as ET
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import FORMAT_VERSION
+from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, load_adapter,
+                      supported_functions)
+
+DEFAULT_VECTORS = Path(__file__).resolve().parents[2] / "conformance" / "vectors"
+
+# Arguments that are arrays in the interface; everything else is passed as parsed from JSON.
+FLOAT_ARRAYS = {"actions", "noise", "weights", "pred", "preds", "obs", "x", "cotangent", "prior", "prev", "chunks",
+                "probs", "values"}
+INT_ARRAYS = {"indices", "chunk_index"}
+MAX_LISTED_FAILURES = 25
+
+
+@dataclass
+class CaseResult:
+    """Outcome of one case: status is pass, fail or unsupported."""
+
+    id: str
+    file: str
+    function: str
+    requirements: list
+    status: str
+    worst: float = 0.0  # largest |got - want| / tolerance over the case's numbers
+    message: str = ""
+    seconds: float = 0.0
+
+
+@dataclass
+class RunResult:
+    impl: str
+    adapter_name: str
+    time_convention: str
+    format_version: str
+    spec_versions: list
+    cases: list = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def counts(self) -> dict:
+        out = {"pass": 0, "fail": 0, "unsupported": 0}
+        for c in self.cases:
+            out[c.status] += 1
+        return out
+
+    @property
+    def ok(self) -> bool:
+        """[CF-16] success: no failure, and at least one supported case."""
+        n = self.counts
+        return n["fail"] == 0 and n["pass"] > 0
+
+    def by_requirement(self) -> dict:
+        reqs: dict[str, dict] = {}
+        for c in self.cases:
+            for r in c.requirements:
+                e = reqs.setdefault(r, {"pass": 0, "fail": 0, "unsupported": 0, "worst": 0.0})
+                e[c.status] += 1
+                if c.status != "unsupported":
+                    e["worst"] = max(e["worst"], c.worst)
+        for e in reqs.values():
+            e["status"] = "FAIL" if e["fail"] else ("PASS" if e["pass"] else "UNSUPPORTED")
+        return dict(sorted(reqs.items(), key=lambda kv: _req_key(kv[0])))
+
+
+def _req_key(rid: str):
+    m = re.match(r"([A-Z]+)-(\d+)$", rid)
+    return (m.group(1), int(m.group(2))) if m else (rid, 0)
+
+
+class VectorError(Exception):
+    """The vector directory is missing or holds files this runner cannot read."""
+
+
+def load_vectors(directory=None) -> list[dict]:
+    """Read every vector file of ``directory`` (index.json excluded), checking format_version ([CF-2])."""
+    d = Path(directory) if directory is not None else DEFAULT_VECTORS
+    if not d.is_dir():
+        raise VectorError(f"vectors directory {d} does not exist")
+    files = sorted(p for p in d.glob("*.json") if p.name != "index.json")
+    if not files:
+        raise VectorError(f"vectors directory {d} holds no *.json vector files")
+    out = []
+    major = FORMAT_VERSION.split(".")[0]
+    for p in files:
+        try:
+            data = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise VectorError(f"cannot read vector file {p}: {exc}") from None
+        fv = str(data.get("format_version", ""))
+        if fv.split(".")[0] != major:
+            raise VectorError(f"{p.name}: format_version {fv!r} is not readable by this runner (needs {major}.x)")
+        if not isinstance(data.get("cases"), list):
+            raise VectorError(f"{p.name}: missing 'cases' list")
+        data["_file"] = p.name
+        out.append(data)
+    return out
+
+
+# ---------------------------------------------------------------- calling
+
+def _field_params(data: dict, name) -> dict:
+    fields = data.get("fields", {})
+    if name not in fields:
+        raise VectorError(f"{data['_file']}: case names unknown field {name!r}")
+    return {k: np.asarray(v, dtype=np.float64) for k, v in fields[name]["params"].items()}
+
+
+def _prepare_arg(key: str, value, data: dict):
+    if key == "field":
+        return _field_params(data, value)
+    if value is None or isinstance(value, (str, dict, bool)):
+        return value
+    if key in FLOAT_ARRAYS or (key == "t" and isinstance(value, list)):
+        return np.asarray(value, dtype=np.float64)
+    if key in INT_ARRAYS:
+        return np.asarray(value, dtype=np.int64)
+    return value
+
+
+def build_args(fn: Fn, case: dict, data: dict, flipped: bool) -> list:
+    """Positional arguments of the call, mapped to the adapter's time convention ([CF-10])."""
+    args = []
+    for key in fn.args:
+        if key not in case["args"]:
+            raise VectorError(f"case {case['id']} lacks argument {key!r}")
+        v = _prepare_arg(key, case["args"][key], data)
+        if flipped and key in fn.time_args:
+            v = 1.0 - np.asarray(v, dtype=np.float64) if isinstance(v, np.ndarray) else 1.0 - float(v)
+        if flipped and key in fn.vel_args:
+            v = -v
+        args.append(v)
+    return args
+
+
+class CaseFailure(Exception):
+    """A case failed; the message is one line."""
+
+
+def _to_np(adapter, value, what: str) -> np.ndarray:
+    conv = getattr(adapter, "to_numpy", None) or np.asarray
+    try:
+        arr = np.asarray(conv(value))
+    except Exception as exc:
+        raise CaseFailure(f"{what}: cannot convert {type(value).__name__} to an array "
+                          f"({type(exc).__name__}: {_line(exc)})") from None
+    if arr.dtype == object:
+        raise CaseFailure(f"{what}: not a numeric array (got {type(value).__name__})")
+    return arr
+
+
+def _normalize(fn: Fn, fname: str, out, adapter, flipped: bool) -> dict:
+    """Adapter return value -> {output name: array} in the spec's convention."""
+    if fn.kind == "value":
+        got = {fn.outputs[0]: out}
+    elif fn.kind == "tuple" or fn.kind == "sample":
+        if not isinstance(out, (tuple, list)) or len(out) != len(fn.outputs):
+            raise CaseFailure(f"{fname} must return a tuple ({', '.join(fn.outputs)}), got {type(out).__name__}"
+                              + (f" of length {len(out)}" if isinstance(out, (tuple, list)) else ""))
+        got = dict(zip(fn.outputs, out))
+    else:
+        if not hasattr(out, "keys"):
+            raise CaseFailure(f"{fname} must return a mapping with keys {list(fn.outputs)}, "
+                              f"got {type(out).__name__}")
+        missing = [k for k in fn.outputs if k not in out]
+        if missing:
+            raise CaseFailure(f"{fname} result lacks keys {missing}")
+        got = {k: out[k] for k in fn.outputs}
+    res = {}
+    for k, v in got.items():
+        if k == "trace":
+            res[k] = None if v is None else _normalize_trace(v, fname, adapter, flipped)
+            continue
+        a = _to_np(adapter, v, f"{fname} output {k!r}")
+        if flipped and k in fn.time_out:
+            a = 1.0 - a
+        if flipped and k in fn.vel_out:
+            a = -a
+        res[k] = a
+    return res
+
+
+def _normalize_trace(trace, fname, adapter, flipped) -> list:
+    if not isinstance(trace, (list, tuple)):
+        raise CaseFailure(f"{fname} trace must be a list of per-step dicts or None, got {type(trace).__name__}")
+    steps = []
+    for i, step in enumerate(trace):
+        if not hasattr(step, "keys"):
+            raise CaseFailure(f"{fname} trace step {i} must be a dict, got {type(step).__name__}")
+        st = {}
+        for k in step.keys():
+            a = _to_np(adapter, step[k], f"{fname} trace step {i} key {k!r}")
+            if flipped and k in TRACE_TIME_KEYS:
+                a = 1.0 - a
+            if flipped and k in TRACE_VEL_KEYS:
+                a = -a
+            st[k] = a
+        steps.append(st)
+    return steps
+
+
+def compare(what: str, got: np.ndarray, want, tol: dict, integer: bool = False) -> float:
+    """Worst |got - want| / (abs + rel |want|) ([CF-5]); raise CaseFailure when above 1."""
+    w = np.asarray(want, dtype=np.float64)
+    g = np.asarray(got)
+    if g.dtype.kind not in "biuf":
+        raise CaseFailure(f"{what}: expected numbers, got dtype {g.dtype}")
+    if g.dtype.kind == "b" and not integer:
+        raise CaseFailure(f"{what}: expected real numbers, got booleans")
+    g = g.astype(np.float64)
+    if g.shape != w.shape:
+        if g.size == w.size == 1 and w.ndim == 0:
+            g = g.reshape(())
+        else:
+            raise CaseFailure(f"{what}: shape {list(g.shape)}, expected {list(w.shape)}")
+    if not np.all(np.isfinite(g)):
+        bad = np.argwhere(~np.isfinite(g))
+        where = f" at index {bad[0].tolist()}" if g.ndim else ""
+        raise CaseFailure(f"{what}: non-finite value (NaN or inf){where}")
+    err = np.abs(g - w)
+    bound = tol["abs"] + tol["rel"] * np.abs(w)
+    if integer:
+        bound = np.zeros_like(err)
+    ratio = np.where(err == 0, 0.0, np.divide(err, bound, out=np.full_like(err, np.inf), where=bound > 0))
+    worst = float(ratio.max()) if ratio.size else 0.0
+    if worst > 1.0:
+        i = np.unravel_index(int(np.argmax(ratio)), ratio.shape) if ratio.ndim else ()
+        idx = f"[{', '.join(map(str, i))}]" if i else ""
+        times = "exact match required" if integer or not math.isfinite(worst) else f"{worst:.3g} x tolerance"
+        raise CaseFailure(f"{what}{idx}: got {g[i] if i else float(g)!r}, expected {w[i] if i else float(w)!r} "
+                          f"({times})")
+    return worst
+
+
+def check_outputs(fn: Fn, fname: str, got: dict, expected: dict, tol: dict) -> tuple[float, str]:
+    worst, note = 0.0, ""
+    for k in fn.outputs:
+        if k == "trace":
+            if got.get("trace") is None:
+                note = "trace not provided; chunk checked only"
+                continue
+            tr, want = got["trace"], expected["trace"]
+            if len(tr) != len(want):
+                raise CaseFailure(f"{fname} trace has {len(tr)} steps, expected {len(want)}")
+            for i, (st, ws) in enumerate(zip(tr, want)):
+                missing = [k2 for k2 in ws if k2 not in st]
+                if missing:
+                    raise CaseFailure(f"{fname} trace step {i} lacks keys {missing}")
+                for k2 in sorted(ws):
+                    worst = max(worst, compare(f"trace step {i} {k2}", st[k2], ws[k2], tol))
+            continue
+        worst = max(worst, compare(k, got[k], expected[k], tol, k in fn.int_out))
+    return worst, note
+
+
+def _signature_problem(func, fname: str, fn: Fn) -> str | None:
+    import inspect
+    try:
+        sig = inspect.signature(func)
+    except (TypeError, ValueError):
+        return None  # builtins without a signature are tried as they are
+    try:
+        sig.bind(*fn.args)
+    except TypeError:
+        return (f"adapter.{fname}{sig} cannot be called as {fname}({', '.join(fn.args)}); "
+                f"see spec/40-conformance.md [CF-7]")
+    return None
+
+
+def _line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else "")[:300]
+
+
+def _where(exc: BaseException) -> str:
+    """file:line of the innermost frame outside this runner, to point at the adapter's code."""
+    frames = [f for f in traceback.extract_tb(exc.__traceback__) if not f.filename.endswith("runner.py")]
+    if not frames:
+        return ""
+    f = frames[-1]
+    return f" ({Path(f.filename).name}:{f.lineno})"
+
+
+def run_case(adapter, fname: str, fn: Fn, case: dict, data: dict, flipped: bool) -> tuple[float, str]:
+    func = getattr(adapter, fname)
+    args = build_args(fn, case, data, flipped)
+    expected = case["expected"]
+    if "error" in expected:
+        try:
+            func(*args)
+        except ValueError:
+            return 0.0, ""
+        except Exception as exc:
+            raise CaseFailure(f"invalid input must raise ValueError, {fname} raised {type(exc).__name__}: "
+                              f"{_line(exc)}{_where(exc)}") from None
+        raise CaseFailure(f"{fname} accepted invalid input (expected ValueError, [N-7])")
+    try:
+        out = func(*args)
+    except Exception as exc:
+        raise CaseFailure(f"{fname} raised {type(exc).__name__}: {_line(exc)}{_where(exc)}") from None
+    got = _normalize(fn, fname, out, adapter, flipped)
+    return check_outputs(fn, fname, got, expected, case["tolerance"])
+
+
+def run(impl, vectors_dir=None, only=None) -> RunResult:
+    """Run every case against ``impl`` (an adapter spec string or an adapter object) ([CF-13]).
+
+    ``only``: optional collection of function names to restrict the run.
+    Raises AdapterError / VectorError with a one-line message when nothing can run.
+    """
+    t0 = time.perf_counter()
+    if isinstance(impl, str):
+        adapter, impl_name = load_adapter(impl), impl
+    else:
+        from .adapter import check_adapter
+        check_adapter(impl)
+        adapter, impl_name = impl, getattr(impl, "name", "?")
+    files = load_vectors(vectors_dir)
+    flipped = getattr(adapter, "time_convention", "data_at_1") == "noise_at_1"
+    supported = set(supported_functions(adapter))
+    sig_problems = {f: _signature_problem(getattr(adapter, f), f, INTERFACE[f]) for f in supported}
+    result = RunResult(impl_name, adapter.name, "noise_at_1" if flipped else "data_at_1", FORMAT_VERSION,
+                       sorted({str(d.get("spec_version")) for d in files}))
+    for data in files:
+        for case in data["cases"]:
+            fname = case.get("function")
+            if only is not None and fname not in only:
+                continue
+            cr = CaseResult(case.get("id", "?"), data["_file"], fname, list(case.get("requirements", [])), "pass")
+            if fname not in INTERFACE:
+                cr.status, cr.message = "fail", f"vector names unknown interface function {fname!r}"
+            elif fname not in supported:
+                cr.status, cr.message = "unsupported", f"adapter has no {fname}"
+            elif sig_problems.get(fname):
+                cr.status, cr.message = "fail", sig_problems[fname]
+            else:
+                c0 = time.perf_counter()
+                try:
+                    cr.worst, cr.message = run_case(adapter, fname, INTERFACE[fname], case, data, flipped)
+                except CaseFailure as exc:
+                    cr.status, cr.message = "fail", str(exc)
+                except VectorError as exc:
+                    cr.status, cr.message = "fail", f"bad vector: {exc}"
+                except Exception as exc:  # a bug while mapping the adapter's output still gives one line
+                    cr.status, cr.message = "fail", f"{type(exc).__name__}: {_line(exc)}{_where(exc)}"
+                cr.seconds = time.perf_counter() - c0
+            result.cases.append(cr)
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+# ---------------------------------------------------------------- reporting
+
+def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> str:
+    """Human-readable summary: one line per requirement id, unsupported functions, failures ([CF-14])."""
+    lines = [f"softrtc conformance: impl {res.impl} (adapter '{res.adapter_name}', {res.time_convention}), "
+             f"vectors format {res.format_version}, spec {', '.join(res.spec_versions)}"]
+    for rid, e in res.by_requirement().items():
+        n = e["pass"] + e["fail"]
+        extra = f", {e['unsupported']} unsupported" if e["unsupported"] else ""
+        worst = f"worst {e['worst']:.3g} x tol" if n and math.isfinite(e["worst"]) else "worst -"
+        lines.append(f"  {e['status']:<11s} {rid:<6s} {worst:<20s} {n:>5d} cases{extra}"
+                     + (f" ({e['fail']} failed)" if e["fail"] else ""))
+    uns: dict[str, int] = {}
+    for c in res.cases:
+        if c.status == "unsupported":
+            uns[c.function] = uns.get(c.function, 0) + 1
+    if uns:
+        lines.append("unsupported (adapter lacks the function): "
+                     + ", ".join(f"{f} ({n} cases)" for f, n in sorted(uns.items())))
+    fails = [c for c in res.cases if c.status == "fail"]
+    if fails:
+        lines.append(f"failures ({len(fails)}; first {min(len(fails), max_failures)} shown):")
+        for c in fails[:max_failures]:
+            lines.append(f"  FAIL {c.id}: {c.message}")
+    n = res.counts
+    lines.append(f"{'PASS' if res.ok else 'FAIL'}: {len(res.cases)} cases: {n['pass']} passed, {n['fail']} failed, "
+                 f"{n['unsupported']} unsupported; {res.seconds:.1f} s")
+    if n["pass"] == 0 and n["fail"] == 0:
+        lines.append("no supported case ran: the adapter provides none of the interface functions")
+    return "\n".join(lines)
+
+
+def report_dict(res: RunResult) -> dict:
+    """The --report JSON document ([CF-15])."""
+    return {"impl": res.impl, "adapter": res.adapter_name, "time_convention": res.time_convention,
+            "format_version": res.format_version, "spec_versions": res.spec_versions, "ok": res.ok,
+            "seconds": round(res.seconds, 3), "counts": res.counts,
+            "requirements": {k: {kk: (vv if not isinstance(vv, float) or math.isfinite(vv) else "inf")
+                                 for kk, vv in v.items()} for k, v in res.by_requirement().items()},
+            "cases": [{k: (v if not isinstance(v, float) or math.isfinite(v) else "inf")
+                       for k, v in asdict(c).items()} for c in res.cases]}
+
+
+def write_junit(res: RunResult, path) -> None:
+    """JUnit XML: one testsuite per vector file, one testcase per case ([CF-15])."""
+    root = ET.Element("testsuites", name=f"softrtc-conformance-{res.adapter_name}",
+                      tests=str(len(res.cases)), failures=str(res.counts["fail"]),
+                      skipped=str(res.counts["unsupported"]), time=f"{res.seconds:.3f}")
+    suites: dict[str, ET.Element] = {}
+    for c in res.cases:
+        s = suites.get(c.file)
+        if s is None:
+            s = suites[c.file] = ET.SubElement(root, "testsuite", name=f"conformance.{Path(c.file).stem}")
+            s.attrib.update(tests="0", failures="0", skipped="0")
+        s.set("tests", str(int(s.get("tests")) + 1))
+        tc = ET.SubElement(s, "testcase", classname=f"conformance.{Path(c.file).stem}.{c.function}", name=c.id,
+                           time=f"{c.seconds:.6f}")
+        ET.SubElement(tc, "properties")
+        props = tc.find("properties")
+        ET.SubElement(props, "property", name="requirements", value=" ".join(c.requirements))
+        if c.status == "fail":
+            s.set("failures", str(int(s.get("failures")) + 1))
+            ET.SubElement(tc, "failure", message=c.message, type="ConformanceFailure")
+        elif c.status == "unsupported":
+            s.set("skipped", str(int(s.get("skipped")) + 1))
+            ET.SubElement(tc, "skipped", message=c.message)
+    ET.ElementTree(root).write(path, encoding="utf-8", xml_declaration=True)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--impl", required=True,
+                        help="built-in adapter (reference, jax, torch, torch-flipped), module[:ATTR] "
+                             "or path/file.py[:ATTR]")
+    parser.add_argument("--vectors", default=None, help=f"vector directory (default: {DEFAULT_VECTORS})")
+    parser.add_argument("--report", default=None, help="write a JSON report to this file")
+    parser.add_argument("--junit", default=None, help="write JUnit XML to this file")
+    parser.add_argument("--only", default=None, help="comma-separated interface functions to run (default: all)")
+
+
+def run_from_args(args) -> int:
+    """Exit status: 0 all supported cases pass, 1 some failed or none ran, 2 nothing could run ([CF-16])."""
+    only = None if not args.only else {f.strip() for f in args.only.split(",") if f.strip()}
+    try:
+        res = run(args.impl, args.vectors, only)
+    except (AdapterError, VectorError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(format_summary(res))
+    try:
+        if args.report:
+            Path(args.report).write_text(json.dumps(report_dict(res), indent=1, sort_keys=True) + "\n")
+        if args.junit:
+            write_junit(res, args.junit)
+    except OSError as exc:
+        print(f"error: cannot write report: {exc}", file=sys.stderr)
+        return 2
+    return 0 if res.ok else 1
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m softrtc.conformance.runner",
+                                     description="Run the softrtc conformance vectors against an implementation.")
+    add_arguments(parser)
+    return run_from_args(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
