@@ -33,7 +33,7 @@ OVERFLOWS = ("clip", "zeros")
 def schedule_value(schedule: str, x) -> np.ndarray:
     """Window schedule g(x) on relative positions x in [0, 1] ([W-3]).
 
-    zeros: 0; ones: 1; linear: 1 - x; exp: u * expm1(u) / (e - 1) with u = 1 - x.
+    zeros: 0; ones: 1; linear: 1 - x; exp: u * expm1(u) / expm1(1) with u = 1 - x.
     All are non-increasing in x, take values in [0, 1], and (except zeros) g(0) = 1.
     """
     check_choice("schedule", schedule, SCHEDULES)
@@ -47,7 +47,8 @@ def schedule_value(schedule: str, x) -> np.ndarray:
     u = 1.0 - x
     if schedule == "linear":
         return u
-    return u * np.expm1(u) / (math.e - 1.0)
+    # Dividing by expm1(1) rather than e - 1 makes g(0) exactly 1 in IEEE arithmetic.
+    return u * np.expm1(u) / np.expm1(1.0)
 
 
 def window_positions(d: int, e: int, parametrization: str = "rtc") -> np.ndarray:

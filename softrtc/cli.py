@@ -1,0 +1,75 @@
+"""The ``softrtc`` command line.
+
+Subcommands register themselves through an ``add_subparsers(subparsers)``
+function in their package's ``cli`` module; a subpackage whose optional
+dependencies are missing is listed with the install hint instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# (module, extra that provides its dependencies)
+_SUBCOMMAND_MODULES = [
+    ("softrtc.reference.cli", None),
+    ("softrtc.conformance.cli", None),
+    ("softrtc.jax.cli", "jax"),
+    ("softrtc.arm.cli", "arm"),
+    ("softrtc.kinetix.cli", "kinetix"),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="softrtc",
+        description="Reference semantics of real-time chunking (RTC) and Soft RTC.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    demo = sub.add_parser("demo", help="the main job: worked examples, weights table, and every "
+                                       "available check on built-in defaults")
+    demo.set_defaults(func=_demo)
+    for mod_name, extra in _SUBCOMMAND_MODULES:
+        try:
+            mod = importlib.import_module(mod_name)
+        except ModuleNotFoundError as exc:
+            if exc.name and exc.name.startswith("softrtc"):
+                continue  # subcommand not present in this build
+            hint = f" (pip install 'softrtc[{extra}]')" if extra else ""
+            sub.add_parser(mod_name.split(".")[1], help=f"unavailable: missing {exc.name}{hint}")
+            continue
+        mod.add_subparsers(sub)
+    return parser
+
+
+def _demo(args) -> int:
+    """Run every demo step that is available, in order; fail if any fails."""
+    steps = []
+    for mod_name, _ in _SUBCOMMAND_MODULES:
+        try:
+            mod = importlib.import_module(mod_name)
+        except ModuleNotFoundError:
+            continue
+        if hasattr(mod, "demo"):
+            steps.append((mod_name, mod.demo))
+    status = 0
+    for name, fn in steps:
+        print(f"\n=== {name.rsplit('.', 2)[1]} ===", flush=True)
+        rc = fn()
+        if rc:
+            print(f"demo step {name} failed with status {rc}", file=sys.stderr)
+            status = rc
+    return status
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

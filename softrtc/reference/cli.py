@@ -1,0 +1,106 @@
+"""``softrtc weights`` / ``softrtc examples``: the reference's worked examples."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from . import endpoints, metrics
+from .endpoints import delay_scaled, fixed, hard, offset
+from .executor import execute_chunks
+from .guidance import guidance_prefix_weights
+from .sampler import naive_sample, rtc_sample
+from .velocity import ReferenceVelocityField
+from .weights import SoftWindow, hard_weights, prefix_weights, soft_weights
+
+
+def _rule_from_args(args):
+    if args.rule == "delay_scaled":
+        return delay_scaled(args.lam, args.h_max)
+    if args.rule == "offset":
+        return offset(args.length, args.h_max)
+    if args.rule == "fixed":
+        return fixed(args.length)
+    return hard()
+
+
+def weights_table(H: int, s: int, window: SoftWindow, delays=None) -> str:
+    """Text table of the soft weights for each delay ([W-7])."""
+    from ._validate import check_int
+    H = check_int("H", H, 1)
+    s = check_int("s", s, 1, H)
+    delays = range(0, min(s, H - s) + 1) if delays is None else delays
+    lines = [f"H={H} s={s} window={json.dumps(window.to_dict())}",
+             "d  e(d) e* | " + " ".join(f"j={j:<3d}" for j in range(H))]
+    from .weights import effective_endpoint
+    for d in delays:
+        e = endpoints.endpoint(window.rule, d)
+        es = effective_endpoint(H, d, min(e, H), s, window.overflow)
+        w = soft_weights(H, d, window, s)
+        lines.append(f"{d:<2d} {e:<4d} {es:<2d} | " + " ".join(f"{x:5.3f}" for x in w))
+    return "\n".join(lines)
+
+
+def demo() -> int:
+    """Worked examples of the reference (make demo, first step)."""
+    print("Prefix weights, d=2, e=6, H=10 ([W-4] rtc / [W-5] paper):")
+    print("  rtc   ", np.round(prefix_weights(10, 2, 6, "linear"), 3).tolist())
+    print("  paper ", np.round(prefix_weights(10, 2, 6, "linear", "paper"), 3).tolist())
+    print("\nSoft RTC weights of the paper's main setting ([W-7]), H=8, s=4:")
+    print(weights_table(8, 4, SoftWindow()))
+    print("\nSame with overflow='zeros' (as in the paper's experiments, [W-6]):")
+    print(weights_table(8, 4, SoftWindow(overflow="zeros")))
+    print("\nOffset L=0 equals Hard RTC ([W-8]):",
+          all(np.array_equal(soft_weights(8, d, SoftWindow(offset(0, 8)), 4), hard_weights(8, d))
+              for d in range(5)))
+    print("Delay-scaled lam=1 equals Hard RTC ([W-5] consequence):",
+          all(np.array_equal(soft_weights(8, d, SoftWindow(delay_scaled(1, 5)), 4), hard_weights(8, d))
+              for d in range(5)))
+    print("Guidance weights d=2, H=8, s=4 ([G-1]): hard",
+          guidance_prefix_weights(8, 4, 2, "hard").tolist(), "soft",
+          np.round(guidance_prefix_weights(8, 4, 2, "soft"), 3).tolist())
+
+    field = ReferenceVelocityField.init(seed=0, horizon=8, action_dim=2, obs_dim=4)
+    rng = np.random.default_rng(0)
+    obs, noise = rng.standard_normal(4), rng.standard_normal((8, 2))
+    prev = naive_sample(field, obs, rng.standard_normal((8, 2)), 5)
+    from .executor import shift_prior
+    y = shift_prior(prev, 4)
+    naive = naive_sample(field, obs, noise, 5)
+    same = rtc_sample(field, obs, noise, y, np.zeros(8), 5)
+    print("\nRTC sampler with d=0 equals the naive sampler bitwise ([S-7]):", np.array_equal(naive, same))
+    soft = rtc_sample(field, obs, noise, y, soft_weights(8, 2, SoftWindow(), 4), 5)
+    print("Soft RTC chunk (d=2), first action dim:", np.round(soft[:, 0], 3).tolist())
+    ex = execute_chunks(np.stack([prev, soft]), [0, 2], 4)
+    print("Executed 8 steps, source chunk per step ([X-4]):", ex["chunk_index"].tolist(),
+          "token:", ex["token_index"].tolist())
+    print(f"Action delta {metrics.action_delta(ex['actions']):.4f}, jerk {metrics.action_jerk(ex['actions']):.4f}, "
+          f"boundary jump {metrics.boundary_jump(ex['actions'], ex['chunk_index']):.4f} ([M-1]..[M-3])")
+    return 0
+
+
+def add_subparsers(sub) -> None:
+    p = sub.add_parser("weights", help="print the Soft RTC weight table of a window ([W-7])")
+    p.add_argument("--H", type=int, default=8, help="chunk horizon (default 8)")
+    p.add_argument("--s", type=int, default=4, help="execute horizon (default 4)")
+    p.add_argument("--rule", choices=endpoints.RULES, default="delay_scaled")
+    p.add_argument("--lam", type=float, default=2.0, help="delay multiplier (delay_scaled)")
+    p.add_argument("--h-max", type=int, default=5, help="maximum endpoint (delay_scaled, offset)")
+    p.add_argument("--length", type=int, default=1, help="L (offset) or h (fixed)")
+    p.add_argument("--schedule", choices=("zeros", "ones", "linear", "exp"), default="linear")
+    p.add_argument("--parametrization", choices=("rtc", "paper"), default="rtc")
+    p.add_argument("--overflow", choices=("clip", "zeros"), default="clip")
+    p.set_defaults(func=_weights_cmd)
+    e = sub.add_parser("examples", help="print the reference's worked examples")
+    e.set_defaults(func=lambda args: demo())
+
+
+def _weights_cmd(args) -> int:
+    try:
+        window = SoftWindow(_rule_from_args(args), args.schedule, args.parametrization, args.overflow)
+        print(weights_table(args.H, args.s, window))
+    except ValueError as exc:
+        print(f"softrtc weights: {exc}")
+        return 2
+    return 0

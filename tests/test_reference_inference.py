@@ -1,0 +1,162 @@
+"""Velocity field, samplers and guidance of the reference (spec/03-inference.md)."""
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from softrtc.reference import guidance as G
+from softrtc.reference import methods as Mth
+from softrtc.reference import sampler as S
+from softrtc.reference import weights as W
+from softrtc.reference.executor import shift_prior
+from softrtc.reference.velocity import ReferenceVelocityField, time_features
+
+
+def make(seed=0, H=8, A=2, O=3):
+    f = ReferenceVelocityField.init(seed, H, A, O, hidden=16)
+    rng = np.random.default_rng(seed + 100)
+    return f, rng.standard_normal(O), rng.standard_normal((H, A)), rng.standard_normal((H, A))
+
+
+def test_field_formula():
+    """F-1, F-3: the field computes the spec formula from the stored weights; init is seeded."""
+    f, obs, x, _ = make()
+    t = np.linspace(0, 1, 8)
+    p = f.params
+    h = np.tanh(x.reshape(-1) @ p["W1"] + time_features(t).reshape(-1) @ p["Wt"] + obs @ p["Wo"] + p["b1"])
+    np.testing.assert_allclose(f(obs, x, t), (h @ p["W2"] + p["b2"]).reshape(8, 2))
+    g = ReferenceVelocityField.init(0, 8, 2, 3, hidden=16)
+    assert all(np.array_equal(f.params[k], g.params[k]) for k in f.params)
+    assert not np.array_equal(f.params["W1"], ReferenceVelocityField.init(1, 8, 2, 3, hidden=16).params["W1"])
+    assert np.array_equal(ReferenceVelocityField(f.params)(obs, x, t), f(obs, x, t))
+
+
+@given(st.integers(0, 50))
+def test_vjp_matches_finite_differences(seed):
+    """F-2: the hand-written VJP equals J^T g (central differences)."""
+    f, obs, x, g = make(seed, H=4, A=2)
+    t = np.random.default_rng(seed).random(4)
+    eps = 1e-6
+    J = np.zeros((8, 8))
+    for i in range(8):
+        dx = np.zeros(8); dx[i] = eps
+        J[:, i] = ((f(obs, x + dx.reshape(4, 2), t) - f(obs, x - dx.reshape(4, 2), t)) / (2 * eps)).reshape(-1)
+    np.testing.assert_allclose(f.vjp(obs, x, t, g).reshape(-1), J.T @ g.reshape(-1), atol=1e-7)
+
+
+def test_euler_times():
+    """S-1: t_k = k / T."""
+    np.testing.assert_array_equal(S.euler_times(5), [0, 0.2, 0.4, 0.6, 0.8])
+
+
+def test_naive_sampler_steps():
+    """S-1, S-2: x_{k+1} = x_k + v(obs, x_k, t_k) / T from the noise."""
+    f, obs, noise, _ = make()
+    out, trace = S.naive_sample(f, obs, noise, 4, return_trace=True)
+    x = noise
+    for k in range(4):
+        x = x + f(obs, x, np.full(8, k / 4)) / 4
+        np.testing.assert_array_equal(trace[k]["next_state"], x)
+    np.testing.assert_array_equal(out, x)
+
+
+@given(st.integers(0, 8), st.integers(1, 6), st.integers(0, 30))
+def test_rtc_sampler_blend(d, T, seed):
+    """S-3, S-4, S-5: blended state and time; w=1 tokens equal the prior exactly; no final blend."""
+    f, obs, noise, prior = make(seed)
+    w = W.soft_weights(8, min(d, 4), W.SoftWindow(), 4)
+    out, trace = S.rtc_sample(f, obs, noise, prior, w, T, return_trace=True)
+    x = noise
+    for k, st_ in enumerate(trace):
+        xb = w[:, None] * prior + (1 - w[:, None]) * x
+        np.testing.assert_array_equal(st_["blended_state"], xb)
+        np.testing.assert_array_equal(st_["time"], w + (1 - w) * (k / T))
+        assert np.array_equal(st_["blended_state"][w == 1], prior[w == 1])
+        x = xb + f(obs, xb, st_["time"]) / T
+        np.testing.assert_array_equal(st_["next_state"], x)
+    np.testing.assert_array_equal(out, x)
+    # [S-5]: the committed prefix of the result is the prior plus one velocity step, not the prior.
+    last = trace[-1]
+    np.testing.assert_array_equal(out[w == 1], prior[w == 1] + last["velocity"][w == 1] / T)
+    np.testing.assert_array_equal(S.blend(noise, prior, w), w[:, None] * prior + (1 - w[:, None]) * noise)
+    np.testing.assert_array_equal(S.blend_time(0.4, w), w + (1 - w) * 0.4)
+
+
+@given(st.integers(0, 40), st.integers(1, 6))
+def test_zero_delay_rtc_equals_naive_bitwise(seed, T):
+    """S-7, S-6, G-1: d = 0 gives identical chunks for naive, train hard/soft and inference hard.
+
+    Inference soft RTC still guides the whole overlap at d = 0 ([G-1]), so it differs.
+    """
+    f, obs, noise, prior = make(seed)
+    naive = S.naive_sample(f, obs, noise, T)
+    for method in ("naive", "train_hard", "train_soft", "inference_hard"):
+        out = Mth.generate_chunk(method, f, obs, noise, prior, 4, 0, T)
+        assert np.array_equal(out, naive), method
+    assert not np.array_equal(Mth.generate_chunk("inference_soft", f, obs, noise, prior, 4, 0, T), naive)
+
+
+def test_method_weights_table():
+    """S-6, G-1: methods map to the spec's weights."""
+    np.testing.assert_array_equal(Mth.method_weights("naive", 8, 4, 3), np.zeros(8))
+    np.testing.assert_array_equal(Mth.method_weights("train_hard", 8, 4, 3), W.hard_weights(8, 3))
+    np.testing.assert_array_equal(Mth.method_weights("train_soft", 8, 4, 2),
+                                  W.soft_weights(8, 2, W.SoftWindow(), 4))
+    np.testing.assert_array_equal(Mth.method_weights("inference_hard", 8, 4, 2), W.hard_weights(8, 2))
+    soft = Mth.method_weights("inference_soft", 8, 4, 2)
+    np.testing.assert_allclose(soft, W.prefix_weights(8, 2, 4, "exp"))
+    assert soft[4:].sum() == 0 and 0 < soft[2] < 1
+    f, obs, noise, prior = make()
+    assert np.array_equal(Mth.generate_chunk("train_soft", f, obs, noise, None, 4, 0, 5),
+                          S.naive_sample(f, obs, noise, 5))
+    with pytest.raises(ValueError, match="d must be"):
+        Mth.generate_chunk("train_soft", f, obs, noise, None, 4, 2, 5)
+
+
+def test_guidance_weight_values():
+    """G-4: lam(t) = min(c inv_r2, beta), lam(0) = beta."""
+    assert G.guidance_weight(0.0) == 5.0
+    t = 0.6
+    assert G.guidance_weight(t) == pytest.approx((1 - t) / t * (t * t + (1 - t) ** 2) / (1 - t) ** 2)
+    assert G.guidance_weight(0.9) == 5.0
+    assert G.guidance_weight(0.2, max_guidance=2.0) == 2.0
+
+
+@given(st.integers(0, 30), st.integers(1, 5), st.integers(0, 4), st.sampled_from(["hard", "soft"]))
+def test_guided_sampler_steps(seed, T, d, variant):
+    """G-1, G-2, G-3, G-5: denoised estimate, weighted error, VJP pull-back and the step."""
+    f, obs, noise, prev = make(seed)
+    prior = shift_prior(prev, 4)
+    w = G.guidance_prefix_weights(8, 4, d, variant)
+    out, trace = G.guided_sample(f, obs, noise, prior, w, T, return_trace=True)
+    x = noise
+    for k, st_ in enumerate(trace):
+        t = k / T
+        tv = np.full(8, t)
+        v = f(obs, x, tv)
+        x1 = x + (1 - t) * v
+        err = w[:, None] * (prior - x1)
+        g = err + (1 - t) * f.vjp(obs, x, tv, err)
+        np.testing.assert_allclose(st_["denoised"], x1)
+        np.testing.assert_allclose(st_["vjp"], g)
+        x = x + (v + G.guidance_weight(t) * g) / T
+        np.testing.assert_allclose(st_["next_state"], x)
+    np.testing.assert_allclose(out, x)
+
+
+def test_guidance_pulls_prefix_toward_prior():
+    """G-5: with guidance the committed prefix ends closer to the prior than without."""
+    f, obs, noise, prev = make(3)
+    prior = shift_prior(prev, 4)
+    w = G.guidance_prefix_weights(8, 4, 3, "hard")
+    guided = G.guided_sample(f, obs, noise, prior, w, 5)
+    naive = S.naive_sample(f, obs, noise, 5)
+    assert np.linalg.norm(guided[:3] - prior[:3]) < np.linalg.norm(naive[:3] - prior[:3])
+
+
+@given(st.integers(0, 40), st.integers(1, 6))
+def test_guided_with_zero_weights_equals_naive(seed, T):
+    """G-6: all-zero guidance weights give exactly the naive sampler."""
+    f, obs, noise, prior = make(seed)
+    assert np.array_equal(G.guided_sample(f, obs, noise, prior, np.zeros(8), T), S.naive_sample(f, obs, noise, T))

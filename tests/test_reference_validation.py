@@ -1,0 +1,143 @@
+"""Input validation and notation of the reference (spec/00-overview.md)."""
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from softrtc.reference import corruption, delays, endpoints, executor, guidance, loss, metrics, sampler, weights
+from softrtc.reference.velocity import ReferenceVelocityField
+
+ROOT = Path(__file__).resolve().parents[1]
+
+bad_ints = st.one_of(st.integers(-50, -1), st.just(2.0), st.just(True), st.just(float("nan")),
+                     st.just("3"), st.just(None))
+bad_reals = st.one_of(st.floats(-50, -1e-3), st.just(float("nan")), st.just(float("inf")), st.just("1"),
+                      st.just(None))
+
+F = ReferenceVelocityField.init(0, 4, 2, 3)
+OK = dict(obs=np.zeros(3), noise=np.zeros((4, 2)), prior=np.zeros((4, 2)), weights=np.zeros(4))
+
+
+def _invalid_calls():
+    """(name, strategy of zero-arg callables that must raise ValueError)."""
+    return st.one_of(
+        bad_ints.map(lambda v: lambda: weights.prefix_weights(v, 0, 0)),
+        bad_ints.map(lambda v: lambda: weights.prefix_weights(4, v, 4)),
+        st.integers(5, 40).map(lambda v: lambda: weights.prefix_weights(4, v, 4)),
+        st.integers(0, 1).map(lambda v: lambda: weights.prefix_weights(4, 3, v)),  # e < d
+        st.integers(5, 40).map(lambda v: lambda: weights.prefix_weights(4, 0, v)),  # e > H
+        st.text(max_size=5).map(lambda v: lambda: weights.prefix_weights(4, 1, 2, "x" + v)),
+        bad_ints.map(lambda v: lambda: weights.soft_weights(8, v, weights.SoftWindow(), 4)),
+        st.one_of(bad_ints, st.integers(9, 40)).map(lambda v: lambda: weights.soft_weights(8, 1, weights.SoftWindow(), v)),
+        st.integers(9, 30).map(lambda v: lambda: weights.soft_weights(8, 1, weights.SoftWindow(endpoints.offset(1, v)), 4)),
+        bad_reals.map(lambda v: lambda: endpoints.delay_scaled(v, 5)),
+        st.one_of(bad_ints, st.integers(4097, 10**6)).map(lambda v: lambda: endpoints.delay_scaled(2, v)),
+        bad_ints.map(lambda v: lambda: endpoints.offset(v, 5)),
+        bad_ints.map(lambda v: lambda: endpoints.fixed(v)),
+        bad_ints.map(lambda v: lambda: endpoints.endpoint(endpoints.hard(), v)),
+        bad_ints.map(lambda v: lambda: delays.delay_probs("uniform", v, 4)),
+        st.integers(0, 3).map(lambda v: lambda: delays.delay_probs("uniform", 4, v)),
+        bad_reals.map(lambda v: lambda: delays.delay_probs("exponential", 0, 4, v)),
+        st.one_of(bad_reals, st.floats(1.0, 5.0)).map(lambda v: lambda: delays.sample_delay([0.5, 0.5], 0, v)),
+        st.one_of(bad_reals, st.floats(1.001, 5.0)).map(lambda v: lambda: corruption.corrupt(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros(4), v)),
+        st.integers(1, 6).filter(lambda n: n != 4).map(lambda n: lambda: corruption.corrupt(np.zeros((4, 2)), np.zeros((n, 2)), np.zeros(4), 0.5)),
+        st.sampled_from([np.nan, np.inf, -np.inf]).map(lambda v: lambda: loss.flow_matching_loss(np.full((4, 2), v), np.zeros((4, 2)), np.zeros((4, 2)), np.zeros(4))),
+        st.floats(1.001, 3).map(lambda v: lambda: loss.flow_matching_loss(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros((4, 2)), np.full(4, v))),
+        st.one_of(bad_ints, st.just(0)).map(lambda v: lambda: sampler.naive_sample(F, OK["obs"], OK["noise"], v)),
+        st.integers(1, 6).filter(lambda n: n != 4).map(lambda n: lambda: sampler.rtc_sample(F, OK["obs"], OK["noise"], np.zeros((n, 2)), OK["weights"], 5)),
+        st.sampled_from([np.nan, np.inf]).map(lambda v: lambda: sampler.rtc_sample(F, OK["obs"], np.full((4, 2), v), OK["prior"], OK["weights"], 5)),
+        st.one_of(bad_reals, st.just(0.0)).map(lambda v: lambda: guidance.guided_sample(F, OK["obs"], OK["noise"], OK["prior"], OK["weights"], 5, v)),
+        st.one_of(bad_reals, st.floats(1.0, 3.0)).map(lambda v: lambda: guidance.guidance_weight(v)),
+        st.integers(5, 20).map(lambda v: lambda: guidance.guidance_prefix_weights(8, 4, v, "soft")),
+        st.one_of(bad_ints, st.integers(5, 20)).map(lambda v: lambda: executor.check_delay(8, 4, v)),
+        st.one_of(bad_ints, st.integers(9, 20)).map(lambda v: lambda: executor.shift_prior(np.zeros((8, 1)), v)),
+        st.integers(1, 4).map(lambda v: lambda: executor.execute_chunks(np.zeros((2, 8, 1)), [v, 0], 4)),
+        st.integers(5, 9).map(lambda v: lambda: executor.execute_chunks(np.zeros((2, 8, 1)), [0, v], 4)),
+        st.one_of(bad_ints, st.just(0)).map(lambda v: lambda: metrics.difference_norm(np.zeros((5, 1)), v)),
+        st.one_of(bad_reals, st.floats(1.0, 2.0)).map(lambda v: lambda: metrics.bootstrap_interval(np.ones(3), 100, 0, v)),
+        bad_ints.map(lambda v: lambda: ReferenceVelocityField.init(v, 4, 2, 3)),
+        st.one_of(bad_ints, st.just(0)).map(lambda v: lambda: ReferenceVelocityField.init(0, v, 2, 3)),
+    )
+
+
+@given(_invalid_calls())
+def test_random_invalid_configurations_raise(call):
+    """N-7: every invalid configuration raises ValueError (never clamps or wraps)."""
+    with pytest.raises(ValueError):
+        call()
+
+
+def test_error_messages_name_argument_and_range():
+    """N-7: messages name the argument and the allowed range."""
+    with pytest.raises(ValueError, match=r"d must be an integer in \[0, 8\], got 9"):
+        weights.prefix_weights(8, 9, 9)
+    with pytest.raises(ValueError, match=r"lam must be a finite real number in \[0.0, 4096.0\]"):
+        endpoints.delay_scaled(-1.0, 5)
+    with pytest.raises(ValueError, match=r"noise must have shape \[4, 2\]"):
+        corruption.corrupt(np.zeros((4, 2)), np.zeros((3, 2)), np.zeros(4), 0.5)
+    with pytest.raises(ValueError, match=r"d must be an integer in \[0, 2\], got 3"):
+        executor.check_delay(8, 6, 3)
+    with pytest.raises(ValueError, match="integer"):
+        weights.prefix_weights(8, 2.0, 4)
+
+
+def test_notation_shapes():
+    """N-1, N-2, N-3, N-4: chunk shapes [H, A], 1 <= s <= H, d >= 0, the three regions."""
+    w = weights.soft_weights(10, 2, weights.SoftWindow(endpoints.offset(3, 10)), 4)
+    assert w.shape == (10,)
+    assert list(w[:2]) == [1, 1] and np.all((w[2:5] > 0) & (w[2:5] < 1)) and np.all(w[5:] == 0)
+    for s in (0, 11):
+        with pytest.raises(ValueError, match="s must be"):
+            weights.soft_weights(10, 2, weights.SoftWindow(), s)
+    with pytest.raises(ValueError, match="d must be"):
+        weights.hard_weights(10, -1)
+
+
+def test_time_convention_and_noise_symbols():
+    """N-5, N-6: t = 0 is noise, t = 1 data; the loss constant eta is distinct from noise."""
+    a, n = np.ones((2, 1)), np.zeros((2, 1))
+    x0, _ = corruption.corrupt(a, n, np.zeros(2), 0.0)
+    x1, _ = corruption.corrupt(a, n, np.zeros(2), 1.0)
+    assert np.array_equal(x0, n) and np.array_equal(x1, a)
+    assert loss.ETA == 1e-8
+    assert "eta" in loss.flow_matching_loss.__code__.co_varnames
+
+
+def test_float64_and_determinism():
+    """N-8, N-9: the reference computes in float64; the same seed gives the same field and bootstrap."""
+    w = weights.prefix_weights(8, 2, 5)
+    assert w.dtype == np.float64
+    a = ReferenceVelocityField.init(7, 4, 2, 3)
+    b = ReferenceVelocityField.init(7, 4, 2, 3)
+    assert all(np.array_equal(a.params[k], b.params[k]) for k in a.params)
+    assert metrics.bootstrap_indices(4, 10, 3).tolist() == metrics.bootstrap_indices(4, 10, 3).tolist()
+
+
+def test_reference_imports_only_numpy():
+    """N-7 (dependency-light reference): importing softrtc.reference loads no third-party module but NumPy."""
+    code = ("import sys, softrtc.reference\n"
+            "std = set(sys.stdlib_module_names)\n"
+            "bad = sorted({m.split('.')[0] for m in sys.modules} - std - {'numpy', 'softrtc', '__main__'})\n"
+            "bad = [m for m in bad if not m.startswith('_')]\n"
+            "print(','.join(bad))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.strip() == "", f"third-party modules imported: {out.stdout}"
+
+
+@pytest.mark.slow
+def test_reference_imports_in_numpy_only_venv(tmp_path):
+    """N-7: in a clean virtual environment with only NumPy, `import softrtc.reference` works."""
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    subprocess.run([str(py), "-m", "pip", "install", "--quiet", "numpy"], check=True)
+    out = subprocess.run([str(py), "-c", "import softrtc.reference as r; print(r.prefix_weights(4, 1, 3).tolist())"],
+                         capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[1.0, 0.6666666666666667, 0.33333333333333337, 0.0]"
