@@ -177,7 +177,8 @@ def conditioning_table(model, weight_table, num_steps: int):
     """
     _check_model(model)
     wt = v.array("weight_table", weight_table, ndim=2, lo=0.0, hi=1.0)
-    return model.time_conditioning(rtc_time_table(wt[:, None, :], num_steps))
+    # rtc_time_table puts the step axis first: [T, D, 1, H] -> [D, T, 1, H].
+    return model.time_conditioning(jnp.swapaxes(rtc_time_table(wt[:, None, :], num_steps), 0, 1))
 
 
 def select_conditioning(table, d):

@@ -1,0 +1,150 @@
+"""Asynchronous chunk execution in JAX (spec chapter X, 04-execution.md); twin of ``softrtc.reference.executor``.
+
+``H``, ``A``, the number of chunks ``C`` and the execute horizon ``s`` are
+static (they fix output shapes); delays may be traced, so one compiled
+function serves every delay sequence. Selection uses gathers and
+``jnp.where`` instead of slices with traced bounds.
+
+Traced delays are not range-checked: a delay outside [X-1]'s
+``0 <= d <= min(s, H - s)`` gives undefined results (it is not clipped).
+Check delays on the host with :func:`check_delay` / :func:`check_delays`;
+concrete delays passed to these functions are checked automatically.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _validate as v
+
+
+def check_delay(H: int, s: int, d) -> int:
+    """[X-1] A concrete delay is executable when 0 <= d <= min(s, H - s); returns it as int."""
+    H = v.check_int("H", H, 1)
+    s = v.check_int("s", s, 1, H)
+    return int(v.int_value("d", d, 0, min(s, H - s)))
+
+
+def check_delays(H: int, s: int, delays) -> np.ndarray:
+    """Host-side check of a delay sequence for :func:`execute_chunks` ([X-1], [X-2]): d_0 = 0."""
+    H = v.check_int("H", H, 1)
+    s = v.check_int("s", s, 1, H)
+    ds = np.asarray(delays)
+    if ds.ndim != 1 or ds.size < 1:
+        raise ValueError(f"delays must be a non-empty 1-D integer array, got shape {list(ds.shape)}")
+    v.int_array("delays", ds, lo=0, hi=min(s, H - s))
+    if int(ds[0]) != 0:
+        raise ValueError(f"delays[0] must be an integer in [0, 0] (first chunk, [X-2]), got {int(ds[0])}")
+    return ds
+
+
+def shift_prior(prev_chunk, s) -> jax.Array:
+    """Y[j] = prev[j + s] for j < H - s, 0 for j >= H - s ([X-3]); prev [..., H, A], s may be traced."""
+    prev = v.array("prev_chunk", prev_chunk)
+    if prev.ndim < 2:
+        raise ValueError(f"prev_chunk must have shape [..., H, A], got {list(prev.shape)}")
+    H = prev.shape[-2]
+    s = v.int_value("s", s, 1, H)
+    j = jnp.arange(H)
+    src = jnp.take(prev, jnp.minimum(j + s, H - 1), axis=-2)
+    return jnp.where((j < H - s)[:, None], src, 0.0)
+
+
+def segment(prev_chunk, new_chunk, s: int, d) -> jax.Array:
+    """prev[s : s + d] then new[d : s], shape [..., s, A] ([X-4]); ``s`` static, ``d`` traced or concrete."""
+    prev = v.array("prev_chunk", prev_chunk)
+    if prev.ndim < 2:
+        raise ValueError(f"prev_chunk must have shape [..., H, A], got {list(prev.shape)}")
+    new = v.array("new_chunk", new_chunk, shape=prev.shape)
+    H = prev.shape[-2]
+    s = v.check_int("s", s, 1, H)
+    d = v.int_value("d", d, 0, min(s, H - s))
+    i = jnp.arange(s)
+    # Tokens s + i >= H only occur for i >= H - s >= d, where the new chunk is used.
+    from_prev = jnp.take(prev, jnp.minimum(s + i, H - 1), axis=-2)
+    return jnp.where((i < d)[:, None], from_prev, new[..., :s, :])
+
+
+def execute_chunks(chunks, delays, s: int) -> dict:
+    """Executed actions of C chunks with delays d_0 .. d_{C-1} ([X-2]..[X-5]).
+
+    chunks [C, H, A]; delays [C] (traced or concrete, d_0 = 0 and [X-1]);
+    ``s`` static. Returns ``actions [C*s, A]``, ``chunk_index`` and
+    ``token_index [C*s]`` (int32). Step n = c s + i comes from chunk c - 1,
+    token s + i when c >= 1 and i < d_c, else from chunk c, token i.
+    """
+    ch = v.array("chunks", chunks, ndim=3)
+    C, H, _ = ch.shape
+    if C < 1:
+        raise ValueError("chunks must hold at least one chunk, got 0")
+    s = v.check_int("s", s, 1, H)
+    ds = v.int_array("delays", delays, shape=(C,))
+    if not v.is_traced(ds):
+        check_delays(H, s, ds)
+    n = jnp.arange(C * s)
+    c, i = n // s, n % s
+    # The first chunk never takes from a previous one ([X-2]), whatever d_0 holds.
+    prev = (c >= 1) & (i < ds[c])
+    ci = jnp.where(prev, c - 1, c).astype(jnp.int32)
+    ti = jnp.where(prev, s + i, i).astype(jnp.int32)
+    return {"actions": ch[ci, ti], "chunk_index": ci, "token_index": ti}
+
+
+def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
+    """Closed-loop execution with a functional environment ([X-2], [X-3], [X-4], [X-6]).
+
+    * ``generate(obs, prior, d, c) -> chunk [H, A]``: called once with
+      ``prior=None`` and ``d = 0`` for the first chunk (traced separately,
+      [X-2]) and, inside a ``lax.scan``, with a prior [H, A] and traced d, c
+      for requests c >= 1. Randomness comes from ``c`` (e.g. fold it into a key).
+    * ``env_step(env_state, action) -> (env_state, obs)``: one control step.
+
+    ``delays [C]`` may be traced (C static). Returns a dict with ``actions
+    [C*s, A]``, ``chunks [C, H, A]``, ``priors [C, H, A]`` (zeros for c = 0),
+    ``request_obs [C, ...]`` and the final ``env_state``.
+    """
+    if not callable(generate) or not callable(env_step):
+        raise ValueError("generate and env_step must be callables")
+    H = v.check_int("H", H, 1)
+    s = v.check_int("s", s, 1, H)
+    ds = v.int_array("delays", delays)
+    if ds.ndim != 1 or ds.shape[0] < 1:
+        raise ValueError(f"delays must have shape [C] with C >= 1, got {list(ds.shape)}")
+    if not v.is_traced(ds):
+        check_delays(H, s, ds)
+    obs0 = jnp.asarray(obs0)
+
+    def run_segment(state, seg):
+        def one(state, a):
+            state, obs = env_step(state, a)
+            return state, obs
+        state, obs_seq = jax.lax.scan(one, state, seg)
+        return state, obs_seq[-1]
+
+    first = jnp.asarray(generate(obs0, None, jnp.int32(0), jnp.int32(0)), jnp.float32)
+    if first.ndim != 2 or first.shape[0] != H:
+        raise ValueError(f"generate must return chunks of shape [H={H}, A], got {list(first.shape)}")
+    state, obs = run_segment(env_state, first[:s])
+
+    def request(carry, inp):
+        state, obs, prev = carry
+        c, d = inp
+        prior = shift_prior(prev, s)
+        new = jnp.asarray(generate(obs, prior, d, c), jnp.float32)
+        seg = segment(prev, new, s, d)
+        state2, obs2 = run_segment(state, seg)
+        return (state2, obs2, new), (seg, new, prior, obs)
+
+    C = ds.shape[0]
+    cs = jnp.arange(1, C, dtype=jnp.int32)
+    (state, _, _), (segs, news, priors, req_obs) = jax.lax.scan(request, (state, obs, first), (cs, ds[1:]))
+    A = first.shape[1]
+    return {
+        "actions": jnp.concatenate([first[None, :s], segs], axis=0).reshape(C * s, A),
+        "chunks": jnp.concatenate([first[None], news], axis=0),
+        "priors": jnp.concatenate([jnp.zeros_like(first)[None], priors], axis=0),
+        "request_obs": jnp.concatenate([obs0[None], req_obs], axis=0),
+        "env_state": state,
+    }

@@ -1,0 +1,112 @@
+"""Inference-time RTC (guided inpainting, Black et al. 2025) in JAX (spec chapter G, 03-inference.md).
+
+Twin of ``softrtc.reference.guidance``. The pull-back of the weighted error
+through the denoiser x -> x1 = x + (1 - t) v(obs, x, t) is one ``jax.vjp``
+per step ([G-3]), so any differentiable ``velocity_fn`` works (the flow
+policy, the JAX reference field). Batch conventions are those of
+:mod:`softrtc.jax.sampler`: obs [B, O], noise / prior [B, H, A], weights [H]
+or [B, H], ``velocity_fn(obs, x [B, H, A], t [B, H])``. Examples of a batch
+are independent, so the VJP of the batched denoiser with a per-example
+cotangent is the per-example VJP.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from softrtc.reference import guidance as _ref
+
+from . import _validate as v
+from .sampler import _at, _check_fn, _check_model, _loop, check_batch, euler_times, naive_conditioning
+from .weights import _prefix
+
+MAX_GUIDANCE = _ref.MAX_GUIDANCE
+GUIDANCE_SCHEDULES = _ref.GUIDANCE_SCHEDULES
+
+
+def guidance_prefix_weights(H: int, s, d, variant: str) -> jax.Array:
+    """W = prefix_weights(H, d, H - s, zeros | exp, "rtc") ([G-1]).
+
+    ``H`` and ``variant`` ("hard" | "soft") are static; ``s`` in [1, H] and
+    ``d`` in [0, H - s] may be traced (checked when concrete; traced values
+    outside give undefined results).
+    """
+    H = v.check_int("H", H, 1)
+    v.check_choice("variant", variant, tuple(GUIDANCE_SCHEDULES))
+    s = v.int_value("s", s, 1, H)
+    d = v.int_value("d", d, 0, H - int(s) if not v.is_traced(s) else H)
+    return _prefix(H, d, H - s, GUIDANCE_SCHEDULES[variant], "rtc")
+
+
+def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:
+    """lam(t) = min(c (t^2 + (1-t)^2) / (1-t)^2, beta), c = (1-t)/t, lam(0) = beta ([G-4]).
+
+    ``t`` in [0, 1) and ``beta > 0`` may be traced. At t = 0 the where-select
+    gives c = +inf without evaluating 1/0 in the selected lane, so no NaN appears.
+    """
+    t = v.array("t", t, lo=0.0)
+    if not v.is_traced(t) and t.size and float(jnp.max(t)) >= 1.0:
+        raise ValueError(f"t must lie in [0, 1), got max {float(jnp.max(t))}")
+    beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
+    safe_t = jnp.where(t == 0.0, 1.0, t)
+    c = jnp.where(t == 0.0, jnp.inf, (1.0 - t) / safe_t)
+    inv_r2 = (t * t + (1.0 - t) ** 2) / (1.0 - t) ** 2
+    return jnp.minimum(c * inv_r2, beta)
+
+
+def _guided(apply_fn, obs, x, y, w, T, beta, unroll):
+    """Shared loop: ``apply_fn(k, x, t_k)`` is the velocity at step k ([G-2]..[G-5])."""
+    times = euler_times(T)
+    wx = jnp.broadcast_to(w, x.shape[:2])[..., None]
+
+    def step(k, x):
+        t = times[k]
+
+        def denoise(x):
+            vel = apply_fn(k, x)
+            return x + (1.0 - t) * vel, vel
+
+        x1, pullback, vel = jax.vjp(denoise, x, has_aux=True)
+        err = wx * (y - x1)
+        (g,) = pullback(err)
+        return x + (vel + guidance_weight(t, beta) * g) / T
+
+    return _loop(step, x, T, unroll)
+
+
+def guided_sample(velocity_fn, obs, noise, prior, weights, num_steps: int,
+                  max_guidance=MAX_GUIDANCE, *, unroll: bool = True) -> jax.Array:
+    """Guided sampler of inference-time RTC ([G-2]..[G-5]); returns x^T [B, H, A].
+
+    g = (d x1 / d x)^T err by ``jax.vjp``; with W = 0 the result is bitwise
+    :func:`softrtc.jax.sampler.naive_sample` ([G-6]).
+    """
+    _check_fn("velocity_fn", velocity_fn)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
+    times = euler_times(T)
+
+    def apply_fn(k, x):
+        return velocity_fn(obs, x, jnp.full(x.shape[:2], times[k]))
+
+    return _guided(apply_fn, obs, x, y, w, T, beta, unroll)
+
+
+def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
+                              max_guidance=MAX_GUIDANCE, *, cond=None, unroll: bool = True) -> jax.Array:
+    """:func:`guided_sample` through ``model.apply_conditioned`` ([G-2]..[G-5]).
+
+    Guidance evaluates the model at the scalar time t_k ([G-2]), so the
+    conditioning is that of the naive sampler (``sampler.naive_conditioning``),
+    computed here if ``cond`` is omitted.
+    """
+    _check_model(model)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
+    cond = naive_conditioning(model, T) if cond is None else cond
+
+    def apply_fn(k, x):
+        return model.apply_conditioned(obs, x, _at(cond, k))
+
+    return _guided(apply_fn, obs, x, y, w, T, beta, unroll)

@@ -1,0 +1,149 @@
+"""The five chunk-generation methods in JAX (spec chapter S, [S-6]); twin of ``softrtc.reference.methods``.
+
+| method          | sampler          | weights                                     |
+|-----------------|------------------|---------------------------------------------|
+| naive           | naive_sample     | none (the prior is ignored)                  |
+| inference_hard  | guided_sample    | prefix_weights(H, d, H - s, "zeros")         |
+| inference_soft  | guided_sample    | prefix_weights(H, d, H - s, "exp")           |
+| train_hard      | rtc_sample       | hard_weights(H, d)                           |
+| train_soft      | rtc_sample       | soft_weights(H, d, window, s)                |
+
+``method``, ``H``, ``s`` and ``num_steps`` are static; the delay ``d`` (a
+scalar, or one delay per example ``[B]``) and the window's rule parameters
+may be traced, so one compiled ``generate_chunk`` serves every delay.
+Traced delays must satisfy [X-1] ``0 <= d <= min(s, H - s)``; concrete ones
+are checked. For the first chunk (``prior=None``) every method is the naive
+sampler with d = 0 ([X-2]).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from softrtc.reference import methods as _ref
+
+from . import _validate as v
+from .guidance import guidance_prefix_weights, guided_sample, guided_sample_conditioned
+from .sampler import (naive_conditioning, naive_sample, naive_sample_conditioned, rtc_conditioning,
+                      rtc_sample, rtc_sample_conditioned, select_conditioning, conditioning_table)
+from .weights import SoftWindow, check_window, hard_weights, soft_weights
+
+METHODS = _ref.METHODS
+
+
+def _delay(H, s, d):
+    """A delay scalar or vector [B]; concrete entries must satisfy [X-1]."""
+    hi = min(s, H - s)
+    if jnp.ndim(d) == 0:
+        return v.int_value("d", d, 0, hi)
+    return v.int_array("d", d, shape=(None,), lo=0, hi=hi)
+
+
+def _one(method, H, s, d, window):
+    if method == "naive":
+        return jnp.zeros((H,), jnp.float32)
+    if method.startswith("inference_"):
+        return guidance_prefix_weights(H, s, d, method.split("_", 1)[1])
+    if method == "train_hard":
+        return hard_weights(H, d)
+    return soft_weights(H, d, window, s)
+
+
+def method_weights(method: str, H: int, s: int, d, window=None) -> jax.Array:
+    """Token weights of ``method`` for delay d ([S-6], [G-1], [W-7], [W-8]).
+
+    ``d`` scalar gives [H]; ``d [B]`` gives [B, H]. ``window`` (train_soft
+    only) is a JAX or reference :class:`SoftWindow`, default the paper's main setting.
+    """
+    v.check_choice("method", method, METHODS)
+    H = v.check_int("H", H, 1)
+    s = v.check_int("s", s, 1, H)
+    window = check_window(H, SoftWindow() if window is None else window)
+    d = _delay(H, s, d)
+    if d.ndim == 0:
+        return _one(method, H, s, d, window)
+    return jax.vmap(lambda di: _one(method, H, s, di, window))(d)
+
+
+def method_weight_table(method: str, H: int, s: int, window=None) -> jax.Array:
+    """Weights for every executable delay d = 0 .. min(s, H - s) ([X-1]): [min(s, H - s) + 1, H].
+
+    ``table[d]`` equals ``method_weights(method, H, s, d, window)``. (For
+    training delays up to H use :func:`softrtc.jax.weights.weight_table`.)
+    """
+    v.check_choice("method", method, METHODS)
+    H = v.check_int("H", H, 1)
+    s = v.check_int("s", s, 1, H)
+    return method_weights(method, H, s, jnp.arange(min(s, H - s) + 1, dtype=jnp.int32), window)
+
+
+def _check_first(prior, d):
+    if prior is None and not (not v.is_traced(d) and jnp.ndim(d) == 0 and int(v.int_value("d", d, 0, 0)) == 0):
+        raise ValueError("d must be an integer in [0, 0] for the first chunk (prior=None, [X-2])")
+
+
+def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_steps: int,
+                   window=None, *, unroll: bool = True) -> jax.Array:
+    """One batch of chunks by ``method`` ([S-6]) on the straightforward path.
+
+    Batch conventions of :mod:`softrtc.jax.sampler` (obs [B, O], noise and
+    prior [B, H, A], ``velocity_fn(obs, x, t [B, H])``). ``prior=None`` is the
+    first chunk: naive sampler, d must be 0 ([X-2]).
+    """
+    v.check_choice("method", method, METHODS)
+    H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
+    H = v.check_int("noise.shape[1] (H)", H, 1)
+    _check_first(prior, d)
+    if prior is None or method == "naive":
+        return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
+    w = method_weights(method, H, s, d, window)
+    if method.startswith("inference_"):
+        return guided_sample(velocity_fn, obs, noise, prior, w, num_steps, unroll=unroll)
+    return rtc_sample(velocity_fn, obs, noise, prior, w, num_steps, unroll=unroll)
+
+
+def method_tables(method: str, model, H: int, s: int, num_steps: int, window=None) -> dict:
+    """Precomputed per-method tables for :func:`generate_chunk_conditioned` ([S-3], [G-2]).
+
+    ``{"weights": [D, H], "cond": ...}`` with D = min(s, H - s) + 1. For the
+    training-time methods ``cond`` is the per-delay conditioning table
+    (``sampler.conditioning_table``); for naive and guided methods, which
+    evaluate the model at the scalar time t_k, it is the naive conditioning.
+    Depends on the model's parameters and the window only: build it once per
+    parameter update, outside the rollout loop.
+    """
+    w = method_weight_table(method, H, s, window)
+    if method.startswith("train_"):
+        return {"weights": w, "cond": conditioning_table(model, w, num_steps)}
+    return {"weights": w, "cond": naive_conditioning(model, num_steps)}
+
+
+def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d, num_steps: int,
+                               window=None, *, tables: dict | None = None, unroll: bool = True) -> jax.Array:
+    """:func:`generate_chunk` on the fast path of ``model.apply_conditioned`` ([S-6]).
+
+    ``model`` provides ``time_conditioning`` / ``apply_conditioned`` (the flow
+    policy or the JAX reference field). ``tables`` (optional) comes from
+    :func:`method_tables` with the same method, H, s, T and window; with it
+    the weights and the conditioning of delay ``d`` (scalar or [B]) are
+    gathered from the tables instead of computed.
+    """
+    v.check_choice("method", method, METHODS)
+    H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
+    H = v.check_int("noise.shape[1] (H)", H, 1)
+    s = v.check_int("s", s, 1, H)
+    _check_first(prior, d)
+    naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]
+    if prior is None or method == "naive":
+        return naive_sample_conditioned(model, obs, noise, num_steps, cond=naive_cond, unroll=unroll)
+    if tables is None:
+        w = method_weights(method, H, s, d, window)
+        cond = None
+    else:
+        dd = _delay(H, s, d)
+        w = tables["weights"][dd]
+        cond = select_conditioning(tables["cond"], dd) if method.startswith("train_") else naive_cond
+    if method.startswith("inference_"):
+        return guided_sample_conditioned(model, obs, noise, prior, w, num_steps, cond=cond, unroll=unroll)
+    return rtc_sample_conditioned(model, obs, noise, prior, w, num_steps, cond=cond, unroll=unroll)

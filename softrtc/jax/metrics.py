@@ -1,0 +1,145 @@
+"""Metrics on executed action sequences in JAX (spec chapter M, 05-metrics.md); twin of ``softrtc.reference.metrics``.
+
+All functions act on one episode ``actions [N, A]`` and ``vmap`` over
+episodes. Episodes of different lengths in one padded batch use the optional
+traced ``length``: only steps ``t < length`` count ([M-4] truncation). The
+difference order ``k`` is static.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softrtc.reference import metrics as _ref
+
+from . import _validate as v
+
+HIGH_DELAYS = _ref.HIGH_DELAYS
+
+# The resample index matrix comes from NumPy's generator ([M-5]); it is data, not a JAX computation.
+bootstrap_indices = _ref.bootstrap_indices
+
+
+def _actions(actions):
+    a = v.array("actions", actions, ndim=2)
+    return a
+
+
+def finite_differences(actions, order: int) -> jax.Array:
+    """k-th forward finite difference along time, [N - k, A] ([M-1]); N > k."""
+    a = _actions(actions)
+    k = v.check_int("order", order, 1, 16)
+    if a.shape[0] <= k:
+        raise ValueError(f"actions must have more than order={k} steps, got {a.shape[0]}")
+    return jnp.diff(a, n=k, axis=0)
+
+
+def _length(length, N, k):
+    if length is None:
+        return None
+    return v.int_value("length", length, k + 1, N)
+
+
+def difference_norm(actions, order: int, length=None) -> jax.Array:
+    """D_k = mean_t || Δ^k a_t ||_2 ([M-1]); with ``length`` only the first ``length`` steps count.
+
+    ``length`` (traced or concrete) must lie in [k + 1, N].
+    """
+    a = _actions(actions)
+    k = v.check_int("order", order, 1, 16)
+    norms = jnp.linalg.norm(finite_differences(a, k), axis=-1)
+    n = _length(length, a.shape[0], k)
+    if n is None:
+        return jnp.mean(norms)
+    mask = jnp.arange(norms.shape[0]) < n - k
+    return jnp.sum(jnp.where(mask, norms, 0.0)) / (n - k)
+
+
+def action_delta(actions, length=None) -> jax.Array:
+    """Action delta = D_1 ([M-2])."""
+    return difference_norm(actions, 1, length)
+
+
+def action_jerk(actions, length=None) -> jax.Array:
+    """Action jerk = D_2 ([M-2])."""
+    return difference_norm(actions, 2, length)
+
+
+def switch_mask(chunk_index) -> jax.Array:
+    """[N] booleans: step t >= 1 takes its action from another chunk than t - 1 ([M-3]).
+
+    The static-shape form of the reference's ``switch_steps`` (``jnp.nonzero(mask)``).
+    """
+    ci = jnp.asarray(chunk_index)
+    if ci.ndim != 1 or not jnp.issubdtype(ci.dtype, jnp.integer):
+        raise ValueError("chunk_index must be a 1-D integer array")
+    return jnp.concatenate([jnp.zeros((1,), bool), ci[1:] != ci[:-1]])
+
+
+def boundary_jump(actions, chunk_index, length=None) -> jax.Array:
+    """Mean || a_t - a_{t-1} || over chunk-switch steps t ([M-3]); NaN if there is no switch.
+
+    The reference raises when there is no switch; here that is checked when
+    ``chunk_index`` is concrete, and traced inputs without a switch give NaN (0/0).
+    """
+    a = _actions(actions)
+    ci = jnp.asarray(chunk_index)
+    if ci.shape != (a.shape[0],):
+        raise ValueError(f"chunk_index must have shape [{a.shape[0]}], got {list(ci.shape)}")
+    mask = switch_mask(ci)
+    if length is not None:
+        mask = mask & (jnp.arange(a.shape[0]) < v.int_value("length", length, 1, a.shape[0]))
+    if not v.is_traced(mask) and not bool(jnp.any(mask)):
+        raise ValueError("chunk_index has no chunk switch; the boundary jump needs at least one")
+    step = jnp.linalg.norm(a - jnp.roll(a, 1, axis=0), axis=-1)
+    return jnp.sum(jnp.where(mask, step, 0.0)) / jnp.sum(mask)
+
+
+def solve_rate(solved) -> jax.Array:
+    """Fraction of episodes solved ([M-4]); solved is a non-empty 1-D boolean array."""
+    s = jnp.asarray(solved)
+    if s.ndim != 1 or s.size == 0 or s.dtype != jnp.bool_:
+        raise ValueError("solved must be a non-empty 1-D boolean array")
+    return jnp.mean(s.astype(jnp.float32))
+
+
+def standard_error(values) -> jax.Array:
+    """std(ddof=1) / sqrt(n), n >= 2 ([M-6])."""
+    x = v.array("values", values, ndim=1)
+    if x.shape[0] < 2:
+        raise ValueError(f"values must hold at least 2 entries, got {x.shape[0]}")
+    return jnp.std(x, ddof=1) / jnp.sqrt(x.shape[0])
+
+
+def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -> tuple[jax.Array, jax.Array]:
+    """Percentile interval of resampled means with linear quantiles ([M-5]).
+
+    ``indices [B, n]`` is the resample matrix (e.g. :data:`bootstrap_indices`);
+    ``confidence`` is static.
+    """
+    x = v.array("values", values, ndim=1)
+    idx = jnp.asarray(indices)
+    if idx.ndim != 2 or idx.shape[1] != x.shape[0] or not jnp.issubdtype(idx.dtype, jnp.integer):
+        raise ValueError(f"indices must be an integer array [B, {x.shape[0]}] with entries in [0, {x.shape[0] - 1}]")
+    if not v.is_traced(idx) and idx.size and (int(idx.min()) < 0 or int(idx.max()) >= x.shape[0]):
+        raise ValueError(f"indices must be an integer array [B, {x.shape[0]}] with entries in [0, {x.shape[0] - 1}]")
+    c = v.check_real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
+    means = jnp.mean(x[idx], axis=1)
+    q = jnp.quantile(means, jnp.array([(1.0 - c) / 2.0, 1.0 - (1.0 - c) / 2.0]))
+    return q[0], q[1]
+
+
+def bootstrap_interval(values, num_resamples: int = 10000, seed: int = 0, confidence: float = 0.95):
+    """95% bootstrap interval of the mean over levels ([M-5]), NumPy's index matrix."""
+    x = v.array("values", values, ndim=1)
+    return bootstrap_interval_from_indices(x, bootstrap_indices(x.shape[0], num_resamples, seed), confidence)
+
+
+def is_high_delay(d) -> jax.Array:
+    """d in {3, 4} ([M-7]); ``d`` may be traced or an integer array."""
+    d = jnp.asarray(d)
+    if not jnp.issubdtype(d.dtype, jnp.integer):
+        raise ValueError(f"d must be an integer, got dtype {d.dtype}")
+    return (d == HIGH_DELAYS[0]) | (d == HIGH_DELAYS[1])
