@@ -90,7 +90,7 @@ def test_motors_track_targets_and_arm_does_not_collide():
 
 
 def test_observation_and_action_layout():
-    """A-5, A-8: dims, slices, initial flags and box entries."""
+    """A-7, A-8: dims, slices, initial flags and box entries."""
     env = ArmSortEnv()
     obs = env.reset(3)
     assert env.obs_dim == OBS_DIM == 34 and env.action_dim == ACTION_DIM == 4
@@ -108,7 +108,7 @@ def test_observation_and_action_layout():
 
 
 def test_scene_placement_is_valid():
-    """A-6: parts rest on the table in range and apart; boxes jittered within bounds."""
+    """A-5: parts rest on the table in range and apart; boxes jittered within bounds."""
     cfg = ArmConfig()
     env = ArmSortEnv(cfg)
     for seed in range(20):
@@ -127,7 +127,7 @@ def test_scene_placement_is_valid():
 
 
 def test_same_seed_is_bitwise_deterministic():
-    """A-7, A-4: same seed + same actions -> identical observations and infos."""
+    """A-6, A-4: same seed + same actions -> identical observations and infos."""
     def trajectory(seed):
         env = ArmSortEnv()
         expert = ScriptedExpert()
@@ -164,6 +164,8 @@ def test_action_validation():
     a[0] = np.nan
     with pytest.raises(ValueError, match="finite"):
         env.step(a)
+    with pytest.raises(ValueError, match="action"):
+        env.step(["a", "b", "c", "d"])
     assert env.t == 0  # rejected actions do not advance time
     _, info = env.step(good)
     assert info["t"] == 1

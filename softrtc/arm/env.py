@@ -34,13 +34,13 @@ __all__ = [
 
 NUM_JOINTS = 3
 NUM_OBJECTS = 4
-# [A-5] object order in observations and info: blue0, blue1, silver0, silver1.
+# [A-7] object order in observations and info: blue0, blue1, silver0, silver1.
 OBJECT_NAMES = ("blue0", "blue1", "silver0", "silver1")
 # Box index per object: 0 = blue box, 1 = gray box.
 OBJECT_TARGET_BOX = (0, 0, 1, 1)
 _OBJ_FIELDS = 5  # x, y, angle, held, placed
 
-# [A-5] observation layout (half-open index ranges into the flat vector).
+# [A-7] observation layout (half-open index ranges into the flat vector).
 OBS_SLICES = {
     "q": slice(0, 3),
     "qdot": slice(3, 6),
@@ -235,7 +235,7 @@ class ArmSortEnv:
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed) -> np.ndarray:
-        """Build a fresh scene with seeded object placement ([A-6], [A-7])."""
+        """Build a fresh scene with seeded object placement ([A-5], [A-6])."""
         seed = _check_int("seed", seed, 0, None)
         cfg = self.config
         rng = np.random.default_rng(seed)
@@ -382,7 +382,10 @@ class ArmSortEnv:
 
     def validate_action(self, action) -> np.ndarray:
         """Return ``action`` as float64 or raise ValueError ([A-8])."""
-        a = np.asarray(action, dtype=np.float64) if not isinstance(action, np.ndarray) else action.astype(np.float64)
+        try:
+            a = np.array(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"action must be {ACTION_DIM} numbers, got {action!r}") from None
         if a.shape != (ACTION_DIM,):
             raise ValueError(f"action must have shape ({ACTION_DIM},), got {a.shape}")
         if not np.all(np.isfinite(a)):
@@ -462,7 +465,7 @@ class ArmSortEnv:
         return self._joint_state()[0]
 
     def box_centers(self) -> np.ndarray:
-        """x of the blue and gray box centres (m), shape (2,) ([A-6])."""
+        """x of the blue and gray box centres (m), shape (2,) ([A-5])."""
         if self._scene is None:
             raise RuntimeError("call reset(seed) first")
         return self._scene.box_centers.copy()

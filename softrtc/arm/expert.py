@@ -17,8 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .env import (
-    ACTION_DIM,
-    NUM_JOINTS,
     NUM_OBJECTS,
     OBJECT_TARGET_BOX,
     OBS_DIM,
