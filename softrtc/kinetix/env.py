@@ -12,6 +12,7 @@ it lazily so that ``import softrtc`` stays free of both.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import numbers
 import os
@@ -195,17 +196,27 @@ def load_level(level_name: str, levels_dir: str | os.PathLike | None = None):
     """
     _check_level_name(level_name)
     d = resolve_levels_dir(levels_dir, (level_name,))
-    # kinetix resolves relative paths inside its own package, so pass absolute.
-    level, file_static, file_params = load_from_json_file(str((d / f"{level_name}.json").resolve()))
+    path = (d / f"{level_name}.json").resolve()
+    # kinetix's loader keeps its own defaults for static fields, so the raw
+    # file is checked first to catch a level built for other settings.
+    try:
+        raw = json.loads(path.read_text())
+        raw_static, raw_params = raw["static_env_params"], raw["env_params"]
+    except (ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"level file {path} is not a kinetix level JSON: {e}") from e
     want = benchmark_static_env_params()
+    for field, value in {**LARGE_ENV_PARAMS, "frame_skip": FRAME_SKIP}.items():
+        if field in raw_static and raw_static[field] != value:
+            raise ValueError(f"level file {path} has {field}={raw_static[field]}, expected {value}")
+    if raw_params.get("max_timesteps", MAX_TIMESTEPS) != MAX_TIMESTEPS:
+        raise ValueError(
+            f"level file {path} has max_timesteps={raw_params['max_timesteps']}, expected {MAX_TIMESTEPS}"
+        )
+    # kinetix resolves relative paths inside its own package, so pass absolute.
+    level, file_static, _ = load_from_json_file(str(path))
     got = file_static.replace(screen_dim=want.screen_dim, downscale=want.downscale)
     if got != want:
-        raise ValueError(f"level file {d / (level_name + '.json')} has static params {file_static}, expected {want}")
-    if file_params.max_timesteps != MAX_TIMESTEPS:
-        raise ValueError(
-            f"level file {d / (level_name + '.json')} has max_timesteps {file_params.max_timesteps}, "
-            f"expected {MAX_TIMESTEPS}"
-        )
+        raise ValueError(f"level file {path} has static params {file_static}, expected {want}")
     return level
 
 
