@@ -85,7 +85,8 @@ def _as_float_array(name: str, value: Any, *, allow_int: bool = False) -> jax.Ar
 
 def _check_finite(name: str, arr: jax.Array) -> None:
     # Values can only be inspected outside tracing; under jit only shapes are checked [P-14].
-    if not _is_tracer(arr) and not bool(jnp.all(jnp.isfinite(arr))):
+    # NumPy, not jnp: inside a jit trace even a concrete array would turn into a tracer.
+    if not _is_tracer(arr) and not np.all(np.isfinite(np.asarray(arr))):
         raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
 
 
@@ -93,7 +94,8 @@ def _check_unit_interval(name: str, arr: jax.Array) -> None:
     if _is_tracer(arr):
         return
     _check_finite(name, arr)
-    if arr.size and (bool(jnp.any(arr < 0.0)) or bool(jnp.any(arr > 1.0))):
+    a = np.asarray(arr)
+    if a.size and (np.any(a < 0.0) or np.any(a > 1.0)):
         raise ValueError(f"{name} must lie in [0, 1] (flow time, 0 = noise, 1 = data)")
 
 

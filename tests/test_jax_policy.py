@@ -1,0 +1,403 @@
+"""Tests of the JAX flow policy (spec/30-policy.md, chapter P)."""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+nnx = pytest.importorskip("flax.nnx")
+import jax.numpy as jnp  # noqa: E402
+
+from softrtc.jax.policy import (  # noqa: E402
+    MAX_PERIOD,
+    MIN_PERIOD,
+    FlowPolicy,
+    PolicyConfig,
+    load_checkpoint,
+    load_pure_dict,
+    sincos_time_embedding,
+    state_pure_dict,
+)
+
+TINY = PolicyConfig(channel_dim=16, channel_hidden_dim=24, token_hidden_dim=6, num_layers=2, action_chunk_size=5)
+OBS, ACT, H = 7, 3, TINY.action_chunk_size
+# [P-16] float32 agreement between differently shaped (hence differently compiled) evaluations.
+RTOL = ATOL = 1e-4
+
+
+def _randomize(model: FlowPolicy, seed: int, scale: float = 0.2) -> FlowPolicy:
+    """Replaces every parameter by noise so that adaLN (zero at init) actually depends on time."""
+    rng = np.random.default_rng(seed)  # NumPy noise: no per-shape XLA compilation in the tests
+    state = nnx.state(model)
+    new = jax.tree.map(lambda a: jnp.asarray(scale * rng.standard_normal(a.shape), a.dtype), state)
+    nnx.update(model, new)
+    return model
+
+
+# Jitted entry points keep the suite fast (one compilation per shape instead of one per eager op).
+_call = nnx.jit(lambda p, obs, x, t: p(obs, x, t))
+_tc = nnx.jit(lambda p, t: p.time_conditioning(t))
+_apply = nnx.jit(lambda p, obs, x, cond: p.apply_conditioned(obs, x, cond))
+
+
+def _tiny(seed: int = 0, randomize: bool = True) -> FlowPolicy:
+    pol = FlowPolicy(obs_dim=OBS, action_dim=ACT, config=TINY, rngs=nnx.Rngs(seed))
+    return _randomize(pol, seed + 100) if randomize else pol
+
+
+def _inputs(b: int, seed: int = 0):
+    k1, k2, k3 = jax.random.split(jax.random.key(seed), 3)
+    obs = jax.random.normal(k1, (b, OBS))
+    x = jax.random.normal(k2, (b, H, ACT))
+    t = jax.random.uniform(k3, (b, H))
+    return obs, x, t
+
+
+def _cond_leaves(cond):
+    return jax.tree.leaves(cond)
+
+
+# ----------------------------------------------------------------------------- independent float64 reference
+
+
+def _ref_forward(pd, obs, x, t, channel_dim):
+    """Public-release semantics written out in float64 NumPy from the pure dict; ``t`` is [B, H]."""
+    p = jax.tree.map(lambda a: np.asarray(a, np.float64), pd)
+    obs, x, t = (np.asarray(a, np.float64) for a in (obs, x, t))
+
+    def lin(name, v):
+        out = v @ name["kernel"]
+        return out + name["bias"] if "bias" in name else out
+
+    def ln(v):
+        mu = v.mean(-1, keepdims=True)
+        var = ((v - mu) ** 2).mean(-1, keepdims=True)
+        return (v - mu) / np.sqrt(var + 1e-6)
+
+    def gelu(v):  # tanh approximation
+        return 0.5 * v * (1 + np.tanh(math.sqrt(2 / math.pi) * (v + 0.044715 * v**3)))
+
+    def swish(v):
+        return v / (1 + np.exp(-v))
+
+    half = channel_dim // 2
+    period = MIN_PERIOD * (MAX_PERIOD / MIN_PERIOD) ** np.linspace(0, 1, half)
+    arg = t[..., None] * (2 * np.pi / period)
+    emb = np.concatenate([np.sin(arg), np.cos(arg)], -1)  # [B, H, C]
+    c = swish(lin(p["time_mlp"]["layers"][2], swish(lin(p["time_mlp"]["layers"][0], emb))))
+
+    b, h = x.shape[:2]
+    hdn = lin(p["in_proj"], np.concatenate([x, np.repeat(obs[:, None], h, 1)], -1))
+    for i in sorted(p["mlp_stack"]):
+        blk = p["mlp_stack"][i]
+        s1, sh1, g1 = np.split(lin(blk["adaln_1"], c), 3, -1)
+        s2, sh2, g2 = np.split(lin(blk["adaln_2"], c), 3, -1)
+        y = (ln(hdn) * (1 + s1) + sh1).transpose(0, 2, 1)
+        y = lin(blk["token_mix_out"], gelu(lin(blk["token_mix_in"], y))).transpose(0, 2, 1)
+        hdn = hdn + g1 * y
+        y = ln(hdn) * (1 + s2) + sh2
+        hdn = hdn + g2 * lin(blk["channel_mix_out"], gelu(lin(blk["channel_mix_in"], y)))
+    scale, shift = np.split(lin(p["final_adaln"], c), 2, -1)
+    return lin(p["out_proj"], ln(hdn) * (1 + scale) + shift)
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+def test_parameter_tree_matches_public_layout():
+    """[P-1] [P-7] Benchmark architecture: exact key paths and shapes of the public parameter tree."""
+    # Abstract initialisation: shapes and structure without materialising 3M parameters.
+    pol = nnx.eval_shape(lambda: FlowPolicy(obs_dim=679, action_dim=6, config=PolicyConfig(), rngs=nnx.Rngs(0)))
+    pd = state_pure_dict(pol)
+    flat = {
+        tuple(str(getattr(k, "key", k)) for k in path): tuple(leaf.shape)
+        for path, leaf in jax.tree_util.tree_flatten_with_path(pd)[0]
+    }
+    want = {
+        ("in_proj", "kernel"): (685, 256),
+        ("in_proj", "bias"): (256,),
+        ("time_mlp", "layers", "0", "kernel"): (256, 256),
+        ("time_mlp", "layers", "0", "bias"): (256,),
+        ("time_mlp", "layers", "2", "kernel"): (256, 256),
+        ("time_mlp", "layers", "2", "bias"): (256,),
+        ("final_adaln", "kernel"): (256, 512),
+        ("final_adaln", "bias"): (512,),
+        ("out_proj", "kernel"): (256, 6),
+        ("out_proj", "bias"): (6,),
+    }
+    for i in range(4):
+        blk = {
+            ("token_mix_in", "kernel"): (8, 64),
+            ("token_mix_out", "kernel"): (64, 8),
+            ("channel_mix_in", "kernel"): (256, 512),
+            ("channel_mix_out", "kernel"): (512, 256),
+            ("adaln_1", "kernel"): (256, 768),
+            ("adaln_1", "bias"): (768,),
+            ("adaln_2", "kernel"): (256, 768),
+            ("adaln_2", "bias"): (768,),
+        }
+        want.update({("mlp_stack", str(i)) + k: v for k, v in blk.items()})
+    assert flat == want
+    # Layer indices are int keys, as nnx.State.to_pure_dict writes them.
+    assert set(pd["mlp_stack"]) == {0, 1, 2, 3} and set(pd["time_mlp"]["layers"]) == {0, 2}
+    assert sum(math.prod(s) for s in want.values()) == 3_072_006
+    assert all(leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(pd))
+
+
+def test_forward_matches_independent_reference():
+    """[P-2] [P-3] [P-4] [P-5] [P-8] Forward pass equals a float64 re-derivation of the public network."""
+    pol = _tiny(1)
+    obs, x, t = _inputs(3, seed=1)
+    pd = state_pure_dict(pol)
+    got = np.asarray(_call(pol, obs, x, t))
+    np.testing.assert_allclose(got, _ref_forward(pd, obs, x, t, TINY.channel_dim), rtol=1e-4, atol=1e-4)
+    ts = t[:, 0]
+    got_s = np.asarray(_call(pol, obs, x, ts))
+    ref_s = _ref_forward(pd, obs, x, np.repeat(np.asarray(ts)[:, None], H, 1), TINY.channel_dim)
+    np.testing.assert_allclose(got_s, ref_s, rtol=1e-4, atol=1e-4)
+    assert got.shape == (3, H, ACT)
+
+
+def test_sincos_time_embedding_values():
+    """[P-3] Embedding: C/2 geometric periods from MIN_PERIOD to MAX_PERIOD, sines then cosines."""
+    assert (MIN_PERIOD, MAX_PERIOD) == (4e-3, 4.0)
+    t = jnp.array([[0.0, 0.25, 1.0]])
+    e = np.asarray(sincos_time_embedding(t, 8))
+    assert e.shape == (1, 3, 8)
+    np.testing.assert_array_equal(e[0, 0], [0, 0, 0, 0, 1, 1, 1, 1])
+    period = 4e-3 * 1000.0 ** (np.arange(4) / 3)
+    ang = 0.25 * 2 * np.pi / period
+    np.testing.assert_allclose(e[0, 1], np.concatenate([np.sin(ang), np.cos(ang)]), atol=2e-5)
+    with pytest.raises(ValueError, match="embedding_dim"):
+        sincos_time_embedding(t, 7)
+    with pytest.raises(ValueError, match="t must"):
+        sincos_time_embedding(jnp.array([jnp.nan]), 8)
+
+
+def test_adaln_zero_initialisation():
+    """[P-6] adaLN kernels start at zero, so a fresh network ignores flow time."""
+    pol = _tiny(2, randomize=False)
+    pd = state_pure_dict(pol)
+    for blk in pd["mlp_stack"].values():
+        for k in ("adaln_1", "adaln_2"):
+            assert not np.any(np.asarray(blk[k]["kernel"])) and not np.any(np.asarray(blk[k]["bias"]))
+    assert not np.any(np.asarray(pd["final_adaln"]["kernel"]))
+    assert np.any(np.asarray(pd["in_proj"]["kernel"]))
+    obs, x, t = _inputs(2, seed=2)
+    np.testing.assert_array_equal(np.asarray(_call(pol, obs, x, t)), np.asarray(_call(pol, obs, x, jnp.zeros(2))))
+
+
+def test_scalar_time_equals_uniform_per_token_time():
+    """[P-8] [P-16] t of shape [B] equals the same time repeated per token (float32 tolerance)."""
+    pol = _tiny(3)
+    obs, x, _ = _inputs(4, seed=3)
+    ts = jnp.array([0.0, 0.3, 0.77, 1.0])
+    a = np.asarray(_call(pol, obs, x, ts))
+    b = np.asarray(_call(pol, obs, x, jnp.broadcast_to(ts[:, None], (4, H))))
+    np.testing.assert_allclose(a, b, rtol=RTOL, atol=ATOL)
+
+
+def test_per_token_time_is_local_to_its_token():
+    """[P-9] Modulation of token j depends on t[..., j] only and equals the shared-time modulation at t_j."""
+    pol = _tiny(4)
+    t = jnp.array([[1.0, 0.9, 0.5, 0.2, 0.2]])
+    cond = _tc(pol, t)
+    t2 = t.at[0, 2].set(0.1)
+    cond2 = _tc(pol, t2)
+    for a, b in zip(_cond_leaves(cond), _cond_leaves(cond2)):
+        changed = np.any(np.asarray(a) != np.asarray(b), axis=-1)[0]
+        assert changed.tolist() == [False, False, True, False, False]
+    for j in range(H):
+        shared = _tc(pol, jnp.full((1, 1), t[0, j]))
+        for a, s in zip(_cond_leaves(cond), _cond_leaves(shared)):
+            np.testing.assert_allclose(np.asarray(a)[0, j], np.asarray(s)[0, 0], rtol=RTOL, atol=ATOL)
+    # Different times on different tokens change the output.
+    obs, x, _ = _inputs(1, seed=4)
+    assert not np.allclose(np.asarray(_call(pol, obs, x, t)), np.asarray(_call(pol, obs, x, jnp.full((1,), 0.5))))
+
+
+def test_time_conditioning_structure_and_shapes():
+    """[P-10] cond holds every adaLN modulation of every layer; leading dims follow t."""
+    pol = _tiny(5)
+    c = TINY.channel_dim
+    for shape in [(H,), (1, H), (5, 1, H), (2, 3, 1)]:
+        cond = _tc(pol, jnp.full(shape, 0.5))
+        assert set(cond) == {"mlp_stack", "final_adaln"}
+        assert len(cond["mlp_stack"]) == TINY.num_layers
+        for layer in cond["mlp_stack"]:
+            assert set(layer) == {"adaln_1", "adaln_2"}
+            assert layer["adaln_1"].shape == shape + (3 * c,) and layer["adaln_2"].shape == shape + (3 * c,)
+        assert cond["final_adaln"].shape == shape + (2 * c,)
+    # It is the adaLN projection of the time-MLP features (no observation enters).
+    t = jnp.array([[0.2, 0.4, 0.6, 0.8, 1.0]])
+    direct = nnx.jit(lambda p, t: p.mlp_stack[1].adaln_2(p.time_mlp(sincos_time_embedding(t, c))))(pol, t)
+    np.testing.assert_allclose(np.asarray(_tc(pol, t)["mlp_stack"][1]["adaln_2"]), np.asarray(direct), rtol=RTOL, atol=ATOL)
+
+
+def test_apply_conditioned_matches_call_and_broadcasts():
+    """[P-11] apply_conditioned(obs, x, time_conditioning(t)) equals policy(obs, x, t); batch-1 cond broadcasts."""
+    pol = _tiny(6)
+    b = 3
+    obs, x, t = _inputs(b, seed=6)
+    ref = np.asarray(_call(pol, obs, x, t))
+    np.testing.assert_allclose(np.asarray(_apply(pol, obs, x, _tc(pol, t))), ref, rtol=RTOL, atol=ATOL)
+    # One table row (batch 1) serves every sample that shares the per-token times.
+    row = jnp.array([1.0, 0.75, 0.5, 0.4, 0.4])
+    ref_row = np.asarray(_call(pol, obs, x, jnp.broadcast_to(row, (b, H))))
+    for cond in (_tc(pol, row[None]), _tc(pol, row)):  # [1, H, F] and [H, F]
+        np.testing.assert_allclose(np.asarray(_apply(pol, obs, x, cond)), ref_row, rtol=RTOL, atol=ATOL)
+
+
+def test_precomputed_table_inside_jitted_sampler():
+    """[P-10] [P-11] A (step -> cond) table built once is indexed inside jit and reproduces the straightforward sampler."""
+    pol = _tiny(7)
+    graphdef, state = nnx.split(pol)
+    steps = 4
+    w = jnp.array([1.0, 1.0, 0.5, 0.0, 0.0])
+    tk = jnp.arange(steps) / steps
+    table = _tc(pol, (w + (1 - w) * tk[:, None])[:, None, :])  # leaves [T, 1, H, F]
+    obs, x0, _ = _inputs(2, seed=7)
+    y = jax.random.normal(jax.random.key(8), (H, ACT))
+
+    @jax.jit
+    def straight(state, x):
+        p = nnx.merge(graphdef, state)
+        for k in range(steps):
+            x = w[:, None] * y + (1 - w[:, None]) * x
+            x = x + p(obs, x, jnp.broadcast_to(w + (1 - w) * tk[k], (2, H))) / steps
+        return x
+
+    @jax.jit
+    def tabled(state, x, table):
+        p = nnx.merge(graphdef, state)
+
+        def step(x, cond):
+            x = w[:, None] * y + (1 - w[:, None]) * x
+            return x + p.apply_conditioned(obs, x, cond) / steps, None
+
+        return jax.lax.scan(step, x, table)[0]
+
+    np.testing.assert_allclose(np.asarray(tabled(state, x0, table)), np.asarray(straight(state, x0)), rtol=RTOL, atol=ATOL)
+
+
+def test_shared_time_fast_path():
+    """[P-12] A shared time gives cond of shape [1, 1, F] that equals the scalar-time call."""
+    pol = _tiny(9)
+    obs, x, _ = _inputs(3, seed=9)
+    for tk in (0.0, 0.4, 1.0):
+        cond = _tc(pol, jnp.full((1, 1), tk))
+        assert cond["final_adaln"].shape == (1, 1, 2 * TINY.channel_dim)
+        np.testing.assert_allclose(
+            np.asarray(_apply(pol, obs, x, cond)),
+            np.asarray(_call(pol, obs, x, jnp.full((3,), tk))),
+            rtol=RTOL,
+            atol=ATOL,
+        )
+
+
+def test_checkpoint_in_public_format_loads(tmp_path):
+    """[P-13] A pickled nnx.state(...).to_pure_dict() (public bc layout) loads and reproduces outputs."""
+    src = _tiny(10)
+    path = tmp_path / "0" / "policies" / "worlds_l_grasp_easy.pkl"
+    path.parent.mkdir(parents=True)
+    with path.open("wb") as f:
+        pickle.dump(nnx.state(src).to_pure_dict(), f)  # exactly what the public trainer writes
+    dst = _tiny(11)
+    obs, x, t = _inputs(2, seed=10)
+    assert not np.allclose(np.asarray(dst(obs, x, t)), np.asarray(src(obs, x, t)))
+    assert load_checkpoint(dst, path) is dst
+    np.testing.assert_array_equal(np.asarray(dst(obs, x, t)), np.asarray(src(obs, x, t)))
+    # NumPy leaves and digit-string layer keys are accepted as well.
+    pd = jax.tree.map(np.asarray, state_pure_dict(_tiny(12)))
+    pd["mlp_stack"] = {str(k): v for k, v in pd["mlp_stack"].items()}
+    load_pure_dict(dst, pd)
+    np.testing.assert_array_equal(np.asarray(dst(obs, x, t)), np.asarray(_tiny(12)(obs, x, t)))
+
+
+def test_load_pure_dict_rejects_mismatches():
+    """[P-13] [P-14] Missing/extra keys, wrong shapes, bad dtypes and non-finite values raise ValueError."""
+    pol = _tiny(13)
+    good = jax.tree.map(np.asarray, state_pure_dict(pol))
+
+    def mutated(fn):
+        pd = jax.tree.map(lambda a: a, good)
+        fn(pd)
+        return pd
+
+    with pytest.raises(ValueError, match=r"missing key 'mlp_stack/1/adaln_2/kernel' \(expected shape \(16, 48\)\)"):
+        load_pure_dict(pol, mutated(lambda pd: pd["mlp_stack"][1]["adaln_2"].pop("kernel")))
+    with pytest.raises(ValueError, match=r"unexpected key 'final_norm/scale'"):
+        load_pure_dict(pol, mutated(lambda pd: pd.update(final_norm={"scale": np.ones(16, np.float32)})))
+    with pytest.raises(ValueError, match=r"in_proj/kernel.*shape \(9, 16\), expected shape \(10, 16\)"):
+        load_pure_dict(pol, mutated(lambda pd: pd["in_proj"].update(kernel=np.zeros((9, 16), np.float32))))
+    with pytest.raises(ValueError, match=r"out_proj/bias.*floating"):
+        load_pure_dict(pol, mutated(lambda pd: pd["out_proj"].update(bias=np.zeros(3, np.int32))))
+    with pytest.raises(ValueError, match=r"out_proj/bias.*finite"):
+        load_pure_dict(pol, mutated(lambda pd: pd["out_proj"].update(bias=np.full(3, np.nan, np.float32))))
+    with pytest.raises(ValueError, match="pure_dict"):
+        load_pure_dict(pol, [1, 2])
+    with pytest.raises(ValueError, match="path"):
+        load_checkpoint(pol, "/nonexistent/policies/x.pkl")
+    # A failed load leaves the model untouched.
+    np.testing.assert_array_equal(np.asarray(pol.in_proj.kernel[...]), good["in_proj"]["kernel"])
+
+
+def test_input_validation():
+    """[P-14] Public entry points raise ValueError naming the argument and the allowed shape/range."""
+    pol = _tiny(14)
+    obs, x, t = _inputs(2, seed=14)
+    cases = [
+        (lambda: pol(obs[:, :-1], x, t), "obs"),
+        (lambda: pol(obs, x[:, :-1], t), "x must have shape"),
+        (lambda: pol(obs, x, t[:1]), r"t must have shape \[B\] or \[B, 5\]"),
+        (lambda: pol(obs, x, t + 1.5), r"t must lie in \[0, 1\]"),
+        (lambda: pol(obs, x, t.at[0, 0].set(jnp.nan)), "t must"),
+        (lambda: pol(obs, x, t > 0.5), "t must have"),
+        (lambda: pol(obs.astype(jnp.int32), x, t), "obs must have a floating dtype"),
+        (lambda: pol(obs, x.at[0, 0, 0].set(jnp.inf), t), "x must contain only finite"),
+        (lambda: pol.time_conditioning(jnp.zeros((2, 3))), r"t must have shape \[\.\.\., 5\] or \[\.\.\., 1\]"),
+        (lambda: pol.time_conditioning(jnp.zeros(())), "t must have shape"),
+        (lambda: pol.apply_conditioned(obs, x, {"mlp_stack": ()}), "cond must be a mapping"),
+        (lambda: pol.apply_conditioned(obs, x, _tc(pol, jnp.zeros((3, H)))), r"b in \{1, 2\}"),
+        (lambda: pol.apply_conditioned(obs, x, _tc(pol, jnp.zeros((1, 2, H)))), "cond"),
+        (lambda: FlowPolicy(obs_dim=0, action_dim=2, config=TINY, rngs=nnx.Rngs(0)), "obs_dim"),
+        (lambda: FlowPolicy(obs_dim=3, action_dim=2.0, config=TINY, rngs=nnx.Rngs(0)), "action_dim"),
+        (lambda: FlowPolicy(obs_dim=3, action_dim=2, config=TINY, rngs=0), "rngs"),
+        (lambda: FlowPolicy(obs_dim=3, action_dim=2, config={}, rngs=nnx.Rngs(0)), "config"),
+        (lambda: PolicyConfig(channel_dim=15), "channel_dim must be even"),
+        (lambda: PolicyConfig(num_layers=True), "num_layers"),
+    ]
+    for fn, msg in cases:
+        with pytest.raises(ValueError, match=msg):
+            fn()
+    # Integer times are accepted (0 and 1 are valid flow times).
+    assert _call(pol, obs, x, jnp.array([0, 1])).shape == (2, H, ACT)
+
+
+def test_validation_under_jit_checks_shapes_only():
+    """[P-14] Under tracing, shapes are still checked; value checks apply only to concrete inputs."""
+    pol = _tiny(15)
+    graphdef, state = nnx.split(pol)
+    obs, x, t = _inputs(2, seed=15)
+
+    def f(state, obs, x, t):
+        return nnx.merge(graphdef, state)(obs, x, t)
+
+    out = jax.jit(f)(state, obs, x, t)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(_call(pol, obs, x, t)), rtol=RTOL, atol=ATOL)
+    with pytest.raises(ValueError, match="t must have shape"):
+        jax.jit(f)(state, obs, x, t[:, :2])
+
+
+def test_explicit_seeds_are_deterministic():
+    """[P-15] Initialisation depends only on the explicit seed."""
+    a = state_pure_dict(FlowPolicy(obs_dim=OBS, action_dim=ACT, config=TINY, rngs=nnx.Rngs(3)))
+    b = state_pure_dict(FlowPolicy(obs_dim=OBS, action_dim=ACT, config=TINY, rngs=nnx.Rngs(3)))
+    c = state_pure_dict(FlowPolicy(obs_dim=OBS, action_dim=ACT, config=TINY, rngs=nnx.Rngs(4)))
+    for la, lb in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(la), np.asarray(lb))
+    assert not np.array_equal(np.asarray(a["in_proj"]["kernel"]), np.asarray(c["in_proj"]["kernel"]))
