@@ -1,0 +1,105 @@
+"""Endpoint rules and token weights (spec chapters E and W), plus the guidance weights of [G-1].
+
+Rules and windows are plain dicts, the same shape the conformance vectors use:
+rule = {"kind": "delay_scaled", "lam": 2.0, "h_max": 5} (or offset with "length" = L,
+fixed with "length" = h, hard); window = {"rule", "schedule", "parametrization", "overflow"}.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .checks import DTYPE, choice, integer, real
+
+MAX_WINDOW = 4096
+SCHEDULES = ("zeros", "ones", "linear", "exp")
+
+
+def endpoint(rule: dict, d: int) -> int:
+    """Raw endpoint e(d) ([E-1]..[E-6]); e(0) = 0 for every rule."""
+    if not isinstance(rule, dict):
+        raise ValueError("rule must be a dict with a 'kind'")
+    kind = choice("rule.kind", rule.get("kind"), ("delay_scaled", "offset", "fixed", "hard"))
+    d = integer("d", d, 0, MAX_WINDOW)
+    if kind == "delay_scaled":
+        lam = real("lam", rule.get("lam"), 0.0, MAX_WINDOW)
+        h_max = integer("h_max", rule.get("h_max"), 0, MAX_WINDOW)
+        # lam is a multiple of 1/4 in practice, so lam * d is exact in binary ([E-2]).
+        return 0 if d == 0 else min(math.ceil(lam * d), h_max)
+    if kind == "offset":
+        L = integer("length", rule.get("length"), 0, MAX_WINDOW)
+        h_max = integer("h_max", rule.get("h_max"), 0, MAX_WINDOW)
+        return 0 if d == 0 else min(d + L, h_max)
+    if kind == "fixed":
+        h = integer("length", rule.get("length"), 0, MAX_WINDOW)
+        return 0 if d == 0 else h
+    return d
+
+
+def _schedule(name: str, x: torch.Tensor) -> torch.Tensor:
+    """g(x) of [W-3]."""
+    if name == "zeros":
+        return torch.zeros_like(x)
+    if name == "ones":
+        return torch.ones_like(x)
+    u = 1.0 - x
+    return u if name == "linear" else u * torch.expm1(u) / (math.e - 1.0)
+
+
+def prefix_weights(H: int, d: int, e: int, schedule: str = "linear", parametrization: str = "rtc") -> torch.Tensor:
+    """1 on [0, d), g(x_j) on [d, e), 0 on [e, H) ([W-1], [W-4], [W-5])."""
+    H = integer("H", H, 1, None)
+    d = integer("d", d, 0, H)
+    e = integer("e", e, d, H)
+    choice("schedule", schedule, SCHEDULES)
+    choice("parametrization", parametrization, ("rtc", "paper"))
+    w = torch.zeros(H, dtype=DTYPE)
+    w[:d] = 1.0
+    if e > d:
+        j = torch.arange(d, e, dtype=torch.float64)
+        # rtc: x = (j - d + 1) / (e - d + 1) keeps every window token editable; paper starts at x = 0.
+        x = (j - d + 1) / (e - d + 1) if parametrization == "rtc" else (j - d) / (e - d)
+        w[d:e] = _schedule(schedule, x).to(DTYPE)
+    return w
+
+
+def soft_weights(H: int, d: int, window: dict, s=None) -> torch.Tensor:
+    """Soft RTC weights ([W-2], [W-6], [W-7])."""
+    H = integer("H", H, 1, None)
+    d = integer("d", d, 0, H)
+    if not isinstance(window, dict) or "rule" not in window:
+        raise ValueError("window must be a dict with keys rule, schedule, parametrization, overflow")
+    rule = window["rule"]
+    schedule = choice("schedule", window.get("schedule", "linear"), SCHEDULES)
+    par = choice("parametrization", window.get("parametrization", "rtc"), ("rtc", "paper"))
+    overflow = choice("overflow", window.get("overflow", "clip"), ("clip", "zeros"))
+    kind = rule.get("kind") if isinstance(rule, dict) else None
+    bound = rule.get("h_max") if kind in ("delay_scaled", "offset") else rule.get("length") if kind == "fixed" else 0
+    if isinstance(bound, int) and bound > H:
+        raise ValueError(f"window endpoint bound (h_max or h) must be <= H={H}, got {bound}")
+    e = endpoint(rule, d)
+    e_star = max(min(e, H), d)  # [W-2]: the committed prefix stays clamped when e < d
+    if overflow == "clip":
+        if s is None:
+            raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
+        s = integer("s", s, 1, H)
+        e_star = max(d, min(e_star, H - s))  # [W-6]: no window past the previous chunk's end
+    return prefix_weights(H, d, e_star, schedule, par)
+
+
+def hard_weights(H: int, d: int) -> torch.Tensor:
+    """1[j < d] ([W-8])."""
+    H = integer("H", H, 1, None)
+    d = integer("d", d, 0, H)
+    return (torch.arange(H) < d).to(DTYPE)
+
+
+def guidance_weights(H: int, s: int, d: int, variant: str) -> torch.Tensor:
+    """Inference-time RTC weights: start d, end H - s, zeros (hard) or exp (soft) ([G-1])."""
+    H = integer("H", H, 1, None)
+    s = integer("s", s, 1, H)
+    d = integer("d", d, 0, H - s)
+    sched = {"hard": "zeros", "soft": "exp"}[choice("variant", variant, ("hard", "soft"))]
+    return prefix_weights(H, d, H - s, sched, "rtc")

@@ -1,0 +1,149 @@
+"""Adapter of the JAX twin in softrtc.jax ([CF-12]); needs jax.
+
+softrtc.jax mirrors the reference module for module, so each method converts
+the interface's JSON-shaped arguments (rule and window dicts, field parameter
+dicts) with the reference helpers and calls the JAX function of the same name.
+The JAX samplers return only the chunk, so sampler cases check the chunk
+([CF-11]: a trace of None means "chunk only").
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import importlib.util
+
+import numpy as np
+
+from .reference import rule_from_dict, window_from_dict
+
+
+def _mod(name: str):
+    return importlib.import_module(f"softrtc.jax.{name}")
+
+
+def _b(a):
+    return np.asarray(a)[None]
+
+
+class JaxAdapter:
+    name = "jax"
+    time_convention = "data_at_1"
+
+    def __init__(self):
+        self._tables = {}
+
+    @staticmethod
+    def to_numpy(x):
+        return np.asarray(x)
+
+    def endpoint(self, rule, d):
+        return _mod("endpoints").endpoint(_mod("endpoints").from_reference(rule_from_dict(rule)), d)
+
+    def prefix_weights(self, H, d, e, schedule, parametrization):
+        return _mod("weights").prefix_weights(H, d, e, schedule, parametrization)
+
+    def weights(self, H, d, window, s):
+        # One weight_table call per (H, window, s) serves every d: the vectors sweep
+        # d = 0 .. H for each window, and per-call dispatch would dominate the run ([CF-17]).
+        # Arguments are validated by soft_weights' own checks through weight_table and below.
+        w = _mod("weights")
+        win = w.from_reference(window_from_dict(window))
+        if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or not 0 <= d <= H:
+            return w.soft_weights(H, d, win, s)  # raises the JAX twin's own ValueError
+        key = (H, json.dumps(window, sort_keys=True), s)
+        if key not in self._tables:
+            self._tables[key] = np.asarray(w.weight_table(H, win, s))
+        return self._tables[key][d]
+
+    def hard_weights(self, H, d):
+        return _mod("weights").hard_weights(H, d)
+
+    def delay_probs(self, dist, d_min, d_max, decay):
+        return _mod("delays").delay_probs(dist, d_min, d_max, decay)
+
+    def sample_delay(self, probs, d_min, u):
+        return _mod("delays").sample_delay(probs, d_min, u)
+
+    def corrupt(self, actions, noise, w, tau):
+        return _mod("corruption").corrupt(actions, noise, w, tau)
+
+    def token_times(self, w, t):
+        return _mod("corruption").token_times(w, t)
+
+    def loss(self, pred, actions, noise, w):
+        return _mod("loss").flow_matching_loss(pred, actions, noise, w)
+
+    def batch_loss(self, preds, actions, noise, w):
+        return _mod("loss").batch_loss(preds, actions, noise, w)
+
+    def _field(self, params):
+        return _mod("velocity").ReferenceVelocityField(params)
+
+    def velocity(self, field, obs, x, t):
+        return self._field(field)(obs, x, t)
+
+    def velocity_vjp(self, field, obs, x, t, cotangent):
+        return self._field(field).vjp(obs, x, t, cotangent)
+
+    @staticmethod
+    def _unbatch(x, noise):
+        # The JAX samplers return [B, H, A]; an unbatched call has B = 1.
+        x = np.asarray(x)
+        return x.reshape(np.shape(noise)) if x.ndim == 3 and x.shape[0] == 1 else x
+
+    # The JAX samplers act on batches [B, ...]; a case is a batch of one.
+    def naive_sample(self, field, obs, noise, T):
+        out = _mod("sampler").naive_sample(self._field(field), _b(obs), _b(noise), T)
+        return self._unbatch(out, noise), None
+
+    def rtc_sample(self, field, obs, noise, prior, w, T):
+        out = _mod("sampler").rtc_sample(self._field(field), _b(obs), _b(noise), _b(prior), _b(w), T)
+        return self._unbatch(out, noise), None
+
+    def guided_sample(self, field, obs, noise, prior, w, T, max_guidance):
+        out = _mod("guidance").guided_sample(self._field(field), _b(obs), _b(noise), _b(prior), _b(w), T, max_guidance)
+        return self._unbatch(out, noise), None
+
+    def guidance_weights(self, H, s, d, variant):
+        return _mod("guidance").guidance_prefix_weights(H, s, d, variant)
+
+    def guidance_weight(self, t, max_guidance):
+        return _mod("guidance").guidance_weight(t, max_guidance)
+
+    def shift_prior(self, prev, s):
+        return _mod("executor").shift_prior(prev, s)
+
+    def execute_chunks(self, chunks, delays, s):
+        return _mod("executor").execute_chunks(chunks, delays, s)
+
+    def difference_norm(self, actions, order):
+        return _mod("metrics").difference_norm(actions, order)
+
+    def action_delta(self, actions):
+        return _mod("metrics").action_delta(actions)
+
+    def action_jerk(self, actions):
+        return _mod("metrics").action_jerk(actions)
+
+    def boundary_jump(self, actions, chunk_index):
+        return _mod("metrics").boundary_jump(actions, chunk_index)
+
+    def bootstrap_interval(self, values, indices, confidence):
+        lo, hi = _mod("metrics").bootstrap_interval_from_indices(values, indices, confidence)
+        return np.array([float(lo), float(hi)])
+
+    def standard_error(self, values):
+        return _mod("metrics").standard_error(values)
+
+
+def _method_weights(self, method, H, s, d, window):
+    return _mod("methods").method_weights(method, H, s, d, None if window is None else
+                                          _mod("weights").from_reference(window_from_dict(window)))
+
+
+# method_weights only where softrtc.jax provides a methods module ([S-6]); otherwise unsupported.
+if importlib.util.find_spec("softrtc.jax.methods") is not None:
+    JaxAdapter.method_weights = _method_weights
+
+ADAPTER = JaxAdapter()
