@@ -25,7 +25,7 @@ from softrtc.jax.policy import (  # noqa: E402
 
 TINY = PolicyConfig(channel_dim=16, channel_hidden_dim=24, token_hidden_dim=6, num_layers=2, action_chunk_size=5)
 OBS, ACT, H = 7, 3, TINY.action_chunk_size
-# [P-16] float32 agreement between differently shaped (hence differently compiled) evaluations.
+# [P-14] float32 agreement between differently shaped (hence differently compiled) evaluations.
 RTOL = ATOL = 1e-4
 
 
@@ -149,7 +149,7 @@ def test_parameter_tree_matches_public_layout():
 
 
 def test_forward_matches_independent_reference():
-    """[P-2] [P-3] [P-4] [P-5] [P-8] Forward pass equals a float64 re-derivation of the public network."""
+    """[P-2] [P-3] [P-4] [P-5] [P-9] Forward pass equals a float64 re-derivation of the public network."""
     pol = _tiny(1)
     obs, x, t = _inputs(3, seed=1)
     pd = state_pure_dict(pol)
@@ -192,7 +192,7 @@ def test_adaln_zero_initialisation():
 
 
 def test_scalar_time_equals_uniform_per_token_time():
-    """[P-8] [P-16] t of shape [B] equals the same time repeated per token (float32 tolerance)."""
+    """[P-9] [P-14] t of shape [B] equals the same time repeated per token (float32 tolerance)."""
     pol = _tiny(3)
     obs, x, _ = _inputs(4, seed=3)
     ts = jnp.array([0.0, 0.3, 0.77, 1.0])
@@ -202,7 +202,7 @@ def test_scalar_time_equals_uniform_per_token_time():
 
 
 def test_per_token_time_is_local_to_its_token():
-    """[P-9] Modulation of token j depends on t[..., j] only and equals the shared-time modulation at t_j."""
+    """[P-10] Modulation of token j depends on t[..., j] only and equals the shared-time modulation at t_j."""
     pol = _tiny(4)
     t = jnp.array([[1.0, 0.9, 0.5, 0.2, 0.2]])
     cond = _tc(pol, t)
@@ -221,7 +221,7 @@ def test_per_token_time_is_local_to_its_token():
 
 
 def test_time_conditioning_structure_and_shapes():
-    """[P-10] cond holds every adaLN modulation of every layer; leading dims follow t."""
+    """[P-11] cond holds every adaLN modulation of every layer; leading dims follow t."""
     pol = _tiny(5)
     c = TINY.channel_dim
     for shape in [(H,), (1, H), (5, 1, H), (2, 3, 1)]:
@@ -239,7 +239,7 @@ def test_time_conditioning_structure_and_shapes():
 
 
 def test_apply_conditioned_matches_call_and_broadcasts():
-    """[P-11] apply_conditioned(obs, x, time_conditioning(t)) equals policy(obs, x, t); batch-1 cond broadcasts."""
+    """[P-12] apply_conditioned(obs, x, time_conditioning(t)) equals policy(obs, x, t); batch-1 cond broadcasts."""
     pol = _tiny(6)
     b = 3
     obs, x, t = _inputs(b, seed=6)
@@ -253,7 +253,7 @@ def test_apply_conditioned_matches_call_and_broadcasts():
 
 
 def test_precomputed_table_inside_jitted_sampler():
-    """[P-10] [P-11] A (step -> cond) table built once is indexed inside jit and reproduces the straightforward sampler."""
+    """[P-11] [P-12] A (step -> cond) table built once is indexed inside jit and reproduces the straightforward sampler."""
     pol = _tiny(7)
     graphdef, state = nnx.split(pol)
     steps = 4
@@ -285,7 +285,7 @@ def test_precomputed_table_inside_jitted_sampler():
 
 
 def test_shared_time_fast_path():
-    """[P-12] A shared time gives cond of shape [1, 1, F] that equals the scalar-time call."""
+    """[P-13] A shared time gives cond of shape [1, 1, F] that equals the scalar-time call."""
     pol = _tiny(9)
     obs, x, _ = _inputs(3, seed=9)
     for tk in (0.0, 0.4, 1.0):
@@ -300,7 +300,7 @@ def test_shared_time_fast_path():
 
 
 def test_checkpoint_in_public_format_loads(tmp_path):
-    """[P-13] A pickled nnx.state(...).to_pure_dict() (public bc layout) loads and reproduces outputs."""
+    """[P-8] A pickled nnx.state(...).to_pure_dict() (public bc layout) loads and reproduces outputs."""
     src = _tiny(10)
     path = tmp_path / "0" / "policies" / "worlds_l_grasp_easy.pkl"
     path.parent.mkdir(parents=True)
@@ -319,7 +319,7 @@ def test_checkpoint_in_public_format_loads(tmp_path):
 
 
 def test_load_pure_dict_rejects_mismatches():
-    """[P-13] [P-14] Missing/extra keys, wrong shapes, bad dtypes and non-finite values raise ValueError."""
+    """[P-8] [P-15] Missing/extra keys, wrong shapes, bad dtypes and non-finite values raise ValueError."""
     pol = _tiny(13)
     good = jax.tree.map(np.asarray, state_pure_dict(pol))
 
@@ -347,7 +347,7 @@ def test_load_pure_dict_rejects_mismatches():
 
 
 def test_input_validation():
-    """[P-14] Public entry points raise ValueError naming the argument and the allowed shape/range."""
+    """[P-15] Public entry points raise ValueError naming the argument and the allowed shape/range."""
     pol = _tiny(14)
     obs, x, t = _inputs(2, seed=14)
     cases = [
@@ -379,7 +379,7 @@ def test_input_validation():
 
 
 def test_validation_under_jit_checks_shapes_only():
-    """[P-14] Under tracing, shapes are still checked; value checks apply only to concrete inputs."""
+    """[P-15] Under tracing, shapes are still checked; value checks apply only to concrete inputs."""
     pol = _tiny(15)
     graphdef, state = nnx.split(pol)
     obs, x, t = _inputs(2, seed=15)
@@ -394,7 +394,7 @@ def test_validation_under_jit_checks_shapes_only():
 
 
 def test_explicit_seeds_are_deterministic():
-    """[P-15] Initialisation depends only on the explicit seed."""
+    """[P-16] Initialisation depends only on the explicit seed."""
     a = state_pure_dict(FlowPolicy(obs_dim=OBS, action_dim=ACT, config=TINY, rngs=nnx.Rngs(3)))
     b = state_pure_dict(FlowPolicy(obs_dim=OBS, action_dim=ACT, config=TINY, rngs=nnx.Rngs(3)))
     c = state_pure_dict(FlowPolicy(obs_dim=OBS, action_dim=ACT, config=TINY, rngs=nnx.Rngs(4)))

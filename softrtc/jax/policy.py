@@ -2,8 +2,8 @@
 
 The network is the flow-matching velocity field ``v(obs, x, t)`` of the public
 RTC Kinetix benchmark, extended so that the flow time ``t`` is given per token
-([P-8]) and so that everything that depends on time alone can be computed ahead
-of time ([P-10], [P-11]).
+([P-9]) and so that everything that depends on time alone can be computed ahead
+of time ([P-11], [P-12]).
 
 Worked example (tiny sizes)::
 
@@ -65,7 +65,7 @@ def _check_pos_int(name: str, value: Any) -> int:
 
 
 def _as_float_array(name: str, value: Any, *, allow_int: bool = False) -> jax.Array:
-    """Converts ``value`` to a JAX array, rejecting bool (and int unless allowed) dtypes [P-14]."""
+    """Converts ``value`` to a JAX array, rejecting bool (and int unless allowed) dtypes [P-15]."""
     if _is_tracer(value):
         arr = value
     else:
@@ -84,7 +84,7 @@ def _as_float_array(name: str, value: Any, *, allow_int: bool = False) -> jax.Ar
 
 
 def _check_finite(name: str, arr: jax.Array) -> None:
-    # Values can only be inspected outside tracing; under jit only shapes are checked [P-14].
+    # Values can only be inspected outside tracing; under jit only shapes are checked [P-15].
     # NumPy, not jnp: inside a jit trace even a concrete array would turn into a tracer.
     if not _is_tracer(arr) and not np.all(np.isfinite(np.asarray(arr))):
         raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
@@ -177,7 +177,7 @@ class MLPMixerBlock(nnx.Module):
         self.adaln_2 = nnx.Linear(channel_dim, 3 * channel_dim, kernel_init=zeros, rngs=rngs)
 
     def modulation(self, time_features: jax.Array) -> dict[str, jax.Array]:
-        """``{"adaln_1": [..., 3C], "adaln_2": [..., 3C]}`` from time-MLP features ``[..., C]`` [P-10]."""
+        """``{"adaln_1": [..., 3C], "adaln_2": [..., 3C]}`` from time-MLP features ``[..., C]`` [P-11]."""
         return {"adaln_1": self.adaln_1(time_features), "adaln_2": self.adaln_2(time_features)}
 
     def __call__(self, x: jax.Array, m1: jax.Array, m2: jax.Array) -> jax.Array:
@@ -205,17 +205,17 @@ class FlowPolicy(nnx.Module):
     Three entry points compute the same function:
 
     * ``policy(obs, x, t)`` — straightforward path; ``t`` per token ``[B, H]`` or
-      per sample ``[B]`` (shared by all tokens) [P-8].
+      per sample ``[B]`` (shared by all tokens) [P-9].
     * ``policy.time_conditioning(t)`` — every time-dependent tensor (all adaLN
-      modulations), for ``t`` of shape ``[..., H]`` or ``[..., 1]`` [P-10].
+      modulations), for ``t`` of shape ``[..., H]`` or ``[..., 1]`` [P-11].
     * ``policy.apply_conditioned(obs, x, cond)`` — the network given such a
-      ``cond``; leading dim 1 broadcasts over the batch [P-11].
+      ``cond``; leading dim 1 broadcasts over the batch [P-12].
 
     Args:
         obs_dim: flat observation size (679 in the Kinetix benchmark).
         action_dim: action size ``A`` (6 in the benchmark).
         config: :class:`PolicyConfig` sizes.
-        rngs: explicit ``nnx.Rngs`` (e.g. ``nnx.Rngs(0)``) for initialisation [P-15].
+        rngs: explicit ``nnx.Rngs`` (e.g. ``nnx.Rngs(0)``) for initialisation [P-16].
     """
 
     def __init__(self, *, obs_dim: int, action_dim: int, config: PolicyConfig = PolicyConfig(), rngs: nnx.Rngs):
@@ -297,10 +297,10 @@ class FlowPolicy(nnx.Module):
     # ------------------------------------------------------------------ time path
 
     def time_conditioning(self, t: Any) -> dict[str, Any]:
-        """All time-dependent tensors of the network for flow times ``t`` [P-10].
+        """All time-dependent tensors of the network for flow times ``t`` [P-11].
 
         ``t`` has shape ``[..., H]`` (one time per token) or ``[..., 1]`` (one time
-        shared by all tokens, the naive-sampler fast path [P-12]); values in [0, 1].
+        shared by all tokens, the naive-sampler fast path [P-13]); values in [0, 1].
         Returns ``{"mlp_stack": ({"adaln_1": m, "adaln_2": m}, ...) per layer,
         "final_adaln": f}`` with ``m`` of shape ``t.shape + (3C,)`` and ``f`` of shape
         ``t.shape + (2C,)``. The result depends on ``t`` and the parameters only, so a
@@ -324,7 +324,7 @@ class FlowPolicy(nnx.Module):
     # ------------------------------------------------------------------ network
 
     def apply_conditioned(self, obs: Any, x: Any, cond: Mapping[str, Any]) -> jax.Array:
-        """Velocity ``[B, H, A]`` from precomputed time conditioning ``cond`` [P-11].
+        """Velocity ``[B, H, A]`` from precomputed time conditioning ``cond`` [P-12].
 
         Every leaf of ``cond`` has shape ``[b, h, F]`` (or ``[h, F]``, read as
         ``b = 1``) with ``b`` in {1, B} and ``h`` in {1, H}; size-1 dims broadcast.
@@ -347,11 +347,11 @@ class FlowPolicy(nnx.Module):
         return self.out_proj(hdn)
 
     def __call__(self, obs: Any, x: Any, t: Any) -> jax.Array:
-        """Velocity ``[B, H, A]`` with flow time ``t`` of shape ``[B, H]`` or ``[B]`` [P-8].
+        """Velocity ``[B, H, A]`` with flow time ``t`` of shape ``[B, H]`` or ``[B]`` [P-9].
 
         A per-sample time ``[B]`` applies to every token; its modulation is computed
         once per sample (shape ``[B, 1, F]``) as in the public release, and the result
-        equals that of the per-token time ``t[:, None]`` repeated over ``H`` [P-8].
+        equals that of the per-token time ``t[:, None]`` repeated over ``H`` [P-9].
         """
         obs, x = self._check_obs_x(obs, x)
         t = _as_float_array("t", t, allow_int=True)
@@ -367,7 +367,7 @@ class FlowPolicy(nnx.Module):
 
 
 def state_pure_dict(model: FlowPolicy) -> dict:
-    """``nnx.state(model).to_pure_dict()``: the dict the public release pickles per policy [P-13]."""
+    """``nnx.state(model).to_pure_dict()``: the dict the public release pickles per policy [P-8]."""
     if not isinstance(model, FlowPolicy):
         raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
     return nnx.state(model).to_pure_dict()
@@ -389,7 +389,7 @@ def _path_str(path: tuple) -> str:
 
 
 def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
-    """Validates ``pure_dict`` against ``model``'s parameter tree and loads it in place [P-13].
+    """Validates ``pure_dict`` against ``model``'s parameter tree and loads it in place [P-8].
 
     ``pure_dict`` is a nested dict as written by ``nnx.state(model).to_pure_dict()``
     (layer indices as ints; digit strings are accepted too). Every key path must
@@ -445,7 +445,7 @@ def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
 
 
 def load_checkpoint(model: FlowPolicy, path: str | os.PathLike) -> FlowPolicy:
-    """Loads a public-format ``bc`` checkpoint (a pickled pure dict) into ``model`` [P-13].
+    """Loads a public-format ``bc`` checkpoint (a pickled pure dict) into ``model`` [P-8].
 
     The file is unpickled, so only load files you trust. Public layout:
     ``<run>/<epoch>/policies/<level_name>.pkl``, e.g. ``worlds_l_grasp_easy.pkl``.
