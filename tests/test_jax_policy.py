@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import pickle
+import warnings
 
 import numpy as np
 import pytest
@@ -304,7 +305,8 @@ def test_checkpoint_in_public_format_loads(tmp_path):
     src = _tiny(10)
     path = tmp_path / "0" / "policies" / "worlds_l_grasp_easy.pkl"
     path.parent.mkdir(parents=True)
-    with path.open("wb") as f:
+    with path.open("wb") as f, warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # the public call form, deprecated in flax 0.12
         pickle.dump(nnx.state(src).to_pure_dict(), f)  # exactly what the public trainer writes
     dst = _tiny(11)
     obs, x, t = _inputs(2, seed=10)

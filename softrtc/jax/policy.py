@@ -366,11 +366,25 @@ class FlowPolicy(nnx.Module):
 # --------------------------------------------------------------------------- checkpoints
 
 
+def _to_pure_dict(state: Any) -> dict:
+    # flax >= 0.12 deprecates the State method in favour of the module-level function.
+    fn = getattr(nnx, "to_pure_dict", None)
+    return fn(state) if fn is not None else state.to_pure_dict()
+
+
+def _replace_by_pure_dict(state: Any, pure: dict) -> None:
+    fn = getattr(nnx, "replace_by_pure_dict", None)
+    if fn is not None:
+        fn(state, pure)
+    else:
+        state.replace_by_pure_dict(pure)
+
+
 def state_pure_dict(model: FlowPolicy) -> dict:
     """``nnx.state(model).to_pure_dict()``: the dict the public release pickles per policy [P-8]."""
     if not isinstance(model, FlowPolicy):
         raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
-    return nnx.state(model).to_pure_dict()
+    return _to_pure_dict(nnx.state(model))
 
 
 def _flatten(tree: Any, prefix: tuple = ()) -> dict[tuple, Any]:
@@ -402,7 +416,7 @@ def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
     if not isinstance(pure_dict, Mapping):
         raise ValueError(f"pure_dict must be a nested mapping of arrays, got {type(pure_dict).__name__}")
     state = nnx.state(model)
-    expected = _flatten(state.to_pure_dict())
+    expected = _flatten(_to_pure_dict(state))
     by_name = {tuple(str(p) for p in path): path for path in expected}
 
     given: dict[tuple, Any] = {}
@@ -439,7 +453,7 @@ def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
         for p in path[:-1]:
             node = node.setdefault(p, {})
         node[path[-1]] = arr
-    state.replace_by_pure_dict(nested)
+    _replace_by_pure_dict(state, nested)
     nnx.update(model, state)
     return model
 
