@@ -325,10 +325,11 @@ def run_case(adapter, fname: str, fn: Fn, case: dict, data: dict, flipped: bool)
     return check_outputs(fn, fname, got, expected, case["tolerance"])
 
 
-def run(impl, vectors_dir=None, only=None) -> RunResult:
+def run(impl, vectors_dir=None, only=None, files=None) -> RunResult:
     """Run every case against ``impl`` (an adapter spec string or an adapter object) ([CF-13]).
 
-    ``only``: optional collection of function names to restrict the run.
+    ``only``: optional collection of function names to restrict the run;
+    ``files``: vectors already read by :func:`load_vectors` (saves re-reading them).
     Raises AdapterError / VectorError with a one-line message when nothing can run.
     """
     t0 = time.perf_counter()
@@ -338,7 +339,7 @@ def run(impl, vectors_dir=None, only=None) -> RunResult:
         from .adapter import check_adapter
         check_adapter(impl)
         adapter, impl_name = impl, getattr(impl, "name", "?")
-    files = load_vectors(vectors_dir)
+    files = load_vectors(vectors_dir) if files is None else files
     flipped = getattr(adapter, "time_convention", "data_at_1") == "noise_at_1"
     supported = set(supported_functions(adapter))
     sig_problems = {f: _signature_problem(getattr(adapter, f), f, INTERFACE[f]) for f in supported}

@@ -1,0 +1,264 @@
+"""Tests of the conformance suite: vectors, runner, adapters, reports (spec/40-conformance.md)."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softrtc.conformance import FORMAT_VERSION, SPEC_VERSION, generate, runner
+from softrtc.conformance.adapter import AdapterError, load_adapter
+from softrtc.conformance.adapters.reference import ReferenceAdapter
+
+ROOT = Path(__file__).resolve().parents[1]
+VECTORS = ROOT / "conformance" / "vectors"
+HAS_TORCH = importlib.util.find_spec("torch") is not None
+HAS_JAX = importlib.util.find_spec("jax") is not None
+
+
+@pytest.fixture(scope="module")
+def vector_files():
+    return runner.load_vectors()
+
+
+def _cli(*args, cwd=ROOT):
+    return subprocess.run([sys.executable, "-m", "softrtc.conformance", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=120)
+
+
+def test_reference_adapter_passes_everything(vector_files):
+    """[CF-13], [CF-16], [CF-4] The reference passes every case, none unsupported; the vectors
+    cover every chapter E, W, D, C, L, F, S, G, X, M, V (ids E-1..E-6, W-1..W-9, D-1..D-3,
+    C-1..C-3, L-1..L-4, F-1, F-2, S-1..S-7, G-1..G-6, X-1..X-5, M-1..M-3, M-5, M-6, V-1, V-3, N-7)."""
+    res = runner.run("reference", files=vector_files)
+    assert res.ok and res.counts["fail"] == 0 and res.counts["unsupported"] == 0
+    reqs = res.by_requirement()
+    for rid in ["E-1", "E-2", "E-3", "E-4", "E-5", "E-6", "W-1", "W-2", "W-3", "W-4", "W-5", "W-6", "W-7", "W-8",
+                "W-9", "D-1", "D-2", "D-3", "C-1", "C-2", "C-3", "L-1", "L-2", "L-3", "L-4", "F-1", "F-2", "S-1",
+                "S-2", "S-3", "S-4", "S-5", "S-6", "S-7", "G-1", "G-2", "G-3", "G-4", "G-5", "G-6", "X-1", "X-2",
+                "X-3", "X-4", "X-5", "M-1", "M-2", "M-3", "M-5", "M-6", "V-1", "V-3", "N-7"]:
+        assert reqs[rid]["status"] == "PASS", rid
+    assert res.seconds < 30  # [CF-17]
+
+
+@pytest.mark.skipif(not HAS_TORCH, reason="torch not installed")
+@pytest.mark.parametrize("impl", ["torch", "torch-flipped"])
+def test_torch_adapters_pass(impl, vector_files):
+    """[CF-21], [CF-10], [CF-9], [CF-17] The float32 PyTorch port passes in both time conventions
+    (V-1, V-3 through the runner's mapping); functions it does not port are listed as unsupported."""
+    res = runner.run(impl, files=vector_files)
+    assert res.ok, runner.format_summary(res)
+    assert res.counts["pass"] > 4000
+    assert res.time_convention == ("noise_at_1" if impl == "torch-flipped" else "data_at_1")
+    for fn in ("weights", "corrupt", "loss", "rtc_sample", "guided_sample"):
+        assert any(c.function == fn and c.status == "pass" for c in res.cases), fn
+    assert res.seconds < 30
+
+
+@pytest.mark.skipif(not HAS_TORCH, reason="torch not installed")
+def test_torch_adapter_by_path_and_module():
+    """[CF-12] Adapters load by built-in name, by file path with :ATTR and by module:ATTR."""
+    a = load_adapter(str(ROOT / "conformance" / "torch_port" / "adapter_flipped.py") + ":ADAPTER")
+    assert a.name == "torch-flipped" and a.time_convention == "noise_at_1"
+    assert load_adapter("softrtc.conformance.adapters.reference:ADAPTER").name == "reference"
+    assert load_adapter("softrtc.conformance.adapters.reference").name == "reference"
+
+
+JAX_QUICK = {"delay_probs", "loss", "velocity", "velocity_vjp", "rtc_sample", "standard_error"}
+
+
+@pytest.mark.skipif(not HAS_JAX, reason="jax not installed")
+def test_jax_adapter_passes_quick_subset(vector_files):
+    """[CF-12], [CF-11] The JAX twin passes a quick subset of functions (chunk-only sampler
+    traces); the full run is test_jax_adapter_passes_all (slow). Ids: D-1, D-2, L-2, F-1, F-2, S-3, M-6."""
+    res = runner.run("jax", files=vector_files, only=JAX_QUICK)
+    assert res.ok, runner.format_summary(res)
+    assert any("trace not provided" in c.message for c in res.cases if c.function == "rtc_sample")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAS_JAX, reason="jax not installed")
+def test_jax_adapter_passes_all(vector_files):
+    """[CF-12], [CF-13] The JAX twin passes every case."""
+    res = runner.run("jax", files=vector_files)
+    assert res.ok, runner.format_summary(res)
+
+
+# ---------------------------------------------------------------- broken adapters
+
+class _Only:
+    name = "broken"
+
+    def __init__(self, **fns):
+        for k, v in fns.items():
+            setattr(self, k, v)
+
+
+@pytest.mark.parametrize("fn,needle", [
+    (lambda H, d, window, s: np.zeros(H + 1), "shape"),
+    (lambda H, d, window, s: np.full(H, np.nan), "non-finite"),
+    (lambda H, d, window, s: (_ for _ in ()).throw(RuntimeError("boom")), "weights raised RuntimeError: boom"),
+    (lambda H: np.zeros(H), "cannot be called as weights(H, d, window, s)"),
+    (lambda H, d, window, s: "nope", "expected numbers"),
+])
+def test_broken_adapter_clean_messages(fn, needle, vector_files):
+    """[CF-18], [CF-16] Wrong shapes, NaN, exceptions, wrong signatures and non-numeric outputs
+    fail with a one-line message naming the case, never a traceback."""
+    res = runner.run(_Only(weights=fn), files=vector_files, only={"weights"})
+    assert not res.ok
+    fails = [c for c in res.cases if c.status == "fail" and "accepted invalid input" not in c.message]
+    assert fails and all(needle in c.message and "\n" not in c.message for c in fails), fails[0].message
+    text = runner.format_summary(res)
+    assert "Traceback" not in text and f"FAIL {fails[0].id}: " in text
+
+
+def test_broken_adapter_loading_errors():
+    """[CF-12], [CF-8], [CF-18] Import errors, missing attributes and malformed adapters give AdapterError."""
+    with pytest.raises(AdapterError, match="cannot import adapter module"):
+        load_adapter("softrtc_no_such_module_xyz")
+    with pytest.raises(AdapterError, match="has no attribute 'NOPE'"):
+        load_adapter("softrtc.conformance.adapters.reference:NOPE")
+    with pytest.raises(AdapterError, match="does not exist"):
+        load_adapter("no/such/file.py:ADAPTER")
+    with pytest.raises(AdapterError, match="'name'"):
+        runner.run(object())
+
+    class BadConv:
+        name, time_convention = "bad", "backwards"
+    with pytest.raises(AdapterError, match="time_convention"):
+        runner.run(BadConv())
+
+
+def test_cli_broken_adapter_file(tmp_path):
+    """[CF-18], [CF-19], [CF-16] From the command line: an adapter file that fails to import
+    exits 2 with one line; an adapter raising inside cases exits 1 without a traceback."""
+    bad = tmp_path / "bad_import.py"
+    bad.write_text("import softrtc_not_a_module\n")
+    r = _cli("run", "--impl", f"{bad}:ADAPTER")
+    assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    raising = tmp_path / "raising.py"
+    raising.write_text("name = 'raising'\n\ndef endpoint(rule, d):\n    raise KeyError(rule['kind'])\n")
+    r = _cli("run", "--impl", str(raising))
+    assert r.returncode == 1 and "Traceback" not in r.stdout + r.stderr
+    assert "endpoint raised KeyError" in r.stdout and "unsupported" in r.stdout
+
+
+def test_unsupported_listed_not_failed(vector_files, capsys):
+    """[CF-9], [CF-14], [CF-16] Cases of missing functions are unsupported and listed; exit 0 when all
+    supported cases pass, 1 when no case is supported."""
+    ref = ReferenceAdapter()
+    partial = _Only(endpoint=ref.endpoint, hard_weights=ref.hard_weights)
+    res = runner.run(partial, files=vector_files)
+    assert res.ok and res.counts["unsupported"] > 0
+    text = runner.format_summary(res)
+    assert "unsupported (adapter lacks the function):" in text and "weights (" in text
+    assert "PASS" in text.splitlines()[-1]
+    none = runner.run(_Only(), files=vector_files)
+    assert not none.ok and "no supported case ran" in runner.format_summary(none)
+
+
+def test_flipped_mapping_is_applied(vector_files):
+    """[CF-10], [V-1], [V-3] An adapter that declares noise_at_1 but computes in spec time fails
+    the time-carrying cases: the runner really maps t' = 1 - t and u = -v."""
+    class Liar(ReferenceAdapter):
+        name, time_convention = "liar", "noise_at_1"
+    res = runner.run(Liar(), files=vector_files, only={"token_times", "corrupt", "velocity", "loss"})
+    failed = {c.function for c in res.cases if c.status == "fail"}
+    assert {"token_times", "corrupt", "velocity", "loss"} <= failed
+
+
+def test_reports_written(tmp_path):
+    """[CF-15], [CF-14], [CF-19] `run --report --junit` writes a JSON report and JUnit XML and prints
+    one line per requirement id."""
+    rep, junit = tmp_path / "r.json", tmp_path / "j.xml"
+    r = _cli("run", "--impl", "reference", "--report", str(rep), "--junit", str(junit),
+             "--only", "endpoint,loss,execute_chunks")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert any(line.split()[:2] == ["PASS", "E-2"] for line in r.stdout.splitlines())
+    data = json.loads(rep.read_text())
+    assert data["ok"] and data["counts"]["fail"] == 0 and data["requirements"]["X-4"]["status"] == "PASS"
+    assert data["format_version"] == FORMAT_VERSION and data["spec_versions"] == [SPEC_VERSION]
+    root = ET.parse(junit).getroot()
+    assert root.tag == "testsuites" and int(root.get("failures")) == 0
+    assert int(root.get("tests")) == len(data["cases"]) and int(root.get("skipped")) == 0
+    assert root.find("testsuite/testcase/properties/property").get("name") == "requirements"
+
+
+def test_vectors_validate_against_schema():
+    """[CF-22], [CF-2], [CF-6] Every vector file validates against spec/vectors.schema.json and
+    index.json holds each file's sha256."""
+    jsonschema = pytest.importorskip("jsonschema")
+    schema = json.loads((ROOT / "spec" / "vectors.schema.json").read_text())
+    jsonschema.Draft202012Validator.check_schema(schema)
+    validator = jsonschema.Draft202012Validator(schema)
+    index = json.loads((VECTORS / "index.json").read_text())
+    assert index["format_version"] == FORMAT_VERSION and index["spec_version"] == SPEC_VERSION
+    files = sorted(p for p in VECTORS.glob("*.json") if p.name != "index.json")
+    assert {p.name for p in files} == set(index["files"])
+    total = 0
+    for p in files:
+        raw = p.read_bytes()
+        total += len(raw)
+        assert hashlib.sha256(raw).hexdigest() == index["files"][p.name]["sha256"], p.name
+        errors = list(validator.iter_errors(json.loads(raw)))
+        assert not errors, f"{p.name}: {errors[0].message}"
+    assert total < 5_000_000  # [CF-4]: a few MB at most
+
+
+def test_regeneration_is_byte_identical(tmp_path):
+    """[CF-1], [CF-3] Regenerating the vectors gives byte-identical files."""
+    sizes = generate.generate(tmp_path)
+    shipped = {p.name for p in VECTORS.glob("*.json")}
+    assert set(sizes) == shipped
+    for name in sorted(shipped):
+        assert (tmp_path / name).read_bytes() == (VECTORS / name).read_bytes(), f"{name} differs"
+
+
+def test_case_structure_and_tolerances(vector_files):
+    """[CF-5], [CF-6] Every case names its requirement ids and a tolerance; integer outputs are
+    exact, weights use 1e-5 and sampler traces 1e-4."""
+    for data in vector_files:
+        for case in data["cases"]:
+            assert case["requirements"] and set(case["tolerance"]) == {"abs", "rel"}
+            if case["function"] in ("weights", "prefix_weights") and "error" not in case["expected"]:
+                assert case["tolerance"] == {"abs": 1e-5, "rel": 1e-5}
+            if case["function"] in ("rtc_sample", "guided_sample", "naive_sample") and "error" not in case["expected"]:
+                assert case["tolerance"] == {"abs": 1e-4, "rel": 1e-4}
+            if case["function"] in ("endpoint", "sample_delay"):
+                assert case["tolerance"] == {"abs": 0.0, "rel": 0.0}
+
+
+def test_vector_format_version_checked(tmp_path):
+    """[CF-2] The runner refuses vector files of another format major version with one line."""
+    (tmp_path / "x.json").write_text(json.dumps({"format_version": "2.0", "cases": []}))
+    with pytest.raises(runner.VectorError, match="format_version"):
+        runner.load_vectors(tmp_path)
+    r = _cli("run", "--impl", "reference", "--vectors", str(tmp_path))
+    assert r.returncode == 2 and "format_version" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_comparison_rule():
+    """[CF-5] |got - want| <= abs + rel |want| elementwise; integers exactly; shapes must match."""
+    tol = {"abs": 1e-5, "rel": 1e-5}
+    assert runner.compare("w", np.float32(0.1), 0.1, tol) <= 1.0
+    with pytest.raises(runner.CaseFailure, match="x tolerance"):
+        runner.compare("w", 0.1002, 0.1, tol)
+    with pytest.raises(runner.CaseFailure, match="exact match"):
+        runner.compare("e", 3, 4, {"abs": 0.0, "rel": 0.0}, integer=True)
+    with pytest.raises(runner.CaseFailure, match="shape"):
+        runner.compare("w", np.zeros(3), [0.0, 0.0], tol)
+
+
+def test_generate_rejects_file_as_out_dir(tmp_path):
+    """[CF-1], [N-7] generate() names its argument when given a file instead of a directory."""
+    f = tmp_path / "file"
+    f.write_text("")
+    with pytest.raises(ValueError, match="out_dir"):
+        generate.generate(f)
