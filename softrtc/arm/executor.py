@@ -1,0 +1,189 @@
+"""Simulated-delay executor on the arm and the arm study's episode metrics (spec [A-22]..[A-24], chapter X).
+
+The delay ``d`` is given in control ticks and no wall clock is read, so a
+rollout is a deterministic function of (policy, env seed, delays, key):
+request ``c`` is made at step ``c s`` with that step's observation and the
+prior ``shift_prior(previous chunk, s)`` ([X-3]); the ``s`` steps that follow
+execute ``previous[s .. s + d_c - 1]`` then ``new[d_c .. s - 1]`` ([X-4]).
+The prior is shifted by the JAX executor (``softrtc.jax.executor``); chunks
+come from the JAX samplers through :class:`softrtc.arm.policies.ArmPolicy`
+([S-6]). The recorded (chunks, delays) reproduce the executed actions through
+either ``execute_chunks`` (JAX or reference) — a conformance test checks it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from softrtc.jax import executor as jexec
+from softrtc.reference import metrics as rmetrics
+
+from .env import ACTION_DIM, ArmConfig, ArmSortEnv, NUM_OBJECTS
+
+__all__ = ["EpisodeRecord", "run_simulated_episode", "episode_metrics", "JOINT_DIMS"]
+
+# [A-24] smoothness metrics use the commanded joint targets only.
+JOINT_DIMS = slice(0, 3)
+
+
+@dataclasses.dataclass
+class EpisodeRecord:
+    """Everything one arm episode produced, for either executor ([A-23], [R-9]).
+
+    Per control tick ``n``: ``actions[n]`` (the command sent), ``chunk_index[n]``
+    and ``token_index[n]`` (its source; ``-1`` for a hold tick of [R-5]),
+    ``joint_pos[n]`` (the observed joint positions before the command).
+    Per chunk ``c``: ``chunks[c]``, ``request_step[c]``, ``delays[c]`` (the ``d``
+    passed to the sampler), ``exec_delays[c]`` (ticks executed from the previous
+    chunk), ``realized_delays[c]``, ``latencies_s[c]`` (runtime only; the
+    simulated executor reports NaN latency). Runtime-only per-tick fields are
+    ``periods_s`` and ``hold``.
+    """
+
+    method: str
+    env_seed: int
+    actions: np.ndarray
+    chunk_index: np.ndarray
+    token_index: np.ndarray
+    joint_pos: np.ndarray
+    chunks: np.ndarray
+    request_step: np.ndarray
+    delays: np.ndarray
+    exec_delays: np.ndarray
+    realized_delays: np.ndarray
+    latencies_s: np.ndarray
+    success: bool
+    num_completed: int
+    success_step: int | None
+    steps: int
+    dt: float
+    hold: np.ndarray | None = None
+    periods_s: np.ndarray | None = None
+    accepted: np.ndarray | None = None
+    fault: str | None = None
+    events: list = dataclasses.field(default_factory=list)
+
+
+def _check_int(name, value, lo, hi=None) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < lo \
+            or (hi is not None and value > hi):
+        raise ValueError(f"{name} must be an integer in [{lo}, {hi if hi is not None else 'inf'}], got {value!r}")
+    return int(value)
+
+
+def _delay_fn(delays, max_delay: int):
+    """A callable c -> d_c for requests c >= 1 from an int, a sequence or a callable ([X-1], [X-5])."""
+    if callable(delays):
+        return lambda c: _check_int(f"delays({c})", delays(c), 0, max_delay)
+    if isinstance(delays, (int, np.integer)) and not isinstance(delays, (bool, np.bool_)):
+        d = _check_int("delays", delays, 0, max_delay)
+        return lambda c: d
+    try:
+        seq = [_check_int(f"delays[{i}]", x, 0, max_delay) for i, x in enumerate(delays)]
+    except TypeError:
+        raise ValueError(f"delays must be an int, a sequence of ints or a callable, got {delays!r}") from None
+    if not seq:
+        raise ValueError("delays must not be empty")
+    if seq[0] != 0:
+        raise ValueError(f"delays[0] must be an integer in [0, 0] (first chunk, [X-2]), got {seq[0]}")
+    # Past the end of the sequence the last delay is kept.
+    return lambda c: seq[min(c, len(seq) - 1)]
+
+
+def run_simulated_episode(policy, env_seed: int, delays, key, *, max_steps: int | None = None,
+                          env_config: ArmConfig | None = None) -> EpisodeRecord:
+    """One closed-loop arm episode under simulated delay ([X-1]..[X-6], [A-22]).
+
+    ``policy`` has ``H``, ``s``, ``method`` and ``generate(obs, prior, d, key)``
+    (an :class:`~softrtc.arm.policies.ArmPolicy`). ``delays`` is a constant
+    ``d`` for every request ``c >= 1``, a sequence ``d_0 = 0, d_1, ...`` (the
+    last entry repeats) or a callable ``c -> d_c``; each must satisfy [X-1]
+    ``0 <= d <= min(s, H - s)``. Request ``c`` uses the key
+    ``jax.random.fold_in(key, c)`` ([N-9]). The episode ends when the
+    environment is done ([A-11]) or after ``max_steps`` steps; metrics are on
+    the truncated sequence ([X-6]).
+    """
+    H, s = _check_int("policy.H", getattr(policy, "H", None), 1), _check_int("policy.s", getattr(policy, "s", None), 1)
+    if s > H or not callable(getattr(policy, "generate", None)):
+        raise ValueError("policy must provide H, s (1 <= s <= H) and generate(obs, prior, d, key)")
+    env_seed = _check_int("env_seed", env_seed, 0)
+    if not isinstance(key, jax.Array) or not jax.numpy.issubdtype(key.dtype, jax.dtypes.prng_key):
+        raise ValueError("key must be a typed JAX PRNG key (jax.random.key(seed))")
+    env = ArmSortEnv(env_config)
+    limit = env.config.max_steps if max_steps is None else _check_int("max_steps", max_steps, 1, env.config.max_steps)
+    dfn = _delay_fn(delays, min(s, H - s))
+
+    obs = env.reset(env_seed)
+    actions, ci, ti, qs = [], [], [], []
+    chunks, req, used = [], [], []
+    info = {"success": False, "num_completed": 0, "success_step": None}
+    prev = None
+    c = 0
+    while not env.done and env.t < limit:
+        d = 0 if c == 0 else dfn(c)
+        req.append(env.t)
+        sub = jax.random.fold_in(key, c)
+        if prev is None:
+            new = np.asarray(policy.generate(obs, None, 0, sub), np.float64)
+            src = [(0, j) for j in range(s)]
+        else:
+            prior = np.asarray(jexec.shift_prior(prev, s), np.float64)
+            new = np.asarray(policy.generate(obs, prior, d, sub), np.float64)
+            # [X-4]: prev[s .. s + d - 1], then new[d .. s - 1].
+            src = [(c - 1, s + i) if i < d else (c, i) for i in range(s)]
+        if new.shape != (H, ACTION_DIM):
+            raise ValueError(f"policy.generate must return a chunk of shape [{H}, {ACTION_DIM}], "
+                             f"got {list(new.shape)}")
+        chunks.append(new)
+        used.append(d)
+        for cc, tt in src:
+            if env.done or env.t >= limit:
+                break
+            qs.append(obs[0:3].copy())
+            a = (prev if cc == c - 1 else new)[tt]
+            obs, info = env.step(a)
+            actions.append(np.asarray(a, np.float64))
+            ci.append(cc)
+            ti.append(tt)
+        prev = new
+        c += 1
+    n = len(actions)
+    return EpisodeRecord(
+        method=str(getattr(policy, "method", "unknown")), env_seed=env_seed,
+        actions=np.asarray(actions).reshape(n, 4), chunk_index=np.asarray(ci, int), token_index=np.asarray(ti, int),
+        joint_pos=np.asarray(qs).reshape(n, 3), chunks=np.asarray(chunks), request_step=np.asarray(req, int),
+        delays=np.asarray(used, int), exec_delays=np.asarray(used, int), realized_delays=np.asarray(used, int),
+        latencies_s=np.full(len(chunks), np.nan), success=bool(info["success"]),
+        num_completed=int(info["num_completed"]), success_step=info["success_step"], steps=n,
+        dt=env.config.dt, hold=np.zeros(n, bool))
+
+
+def episode_metrics(record: EpisodeRecord, max_steps: int | None = None) -> dict:
+    """Per-trial values of the arm study table ([A-24], [M-1], [M-3]).
+
+    ``success``, ``completion`` (completed parts / 4), ``completed``,
+    ``throughput`` (completed parts per minute of episode time: up to success,
+    else the whole episode), ``D1``..``D3`` and ``boundary`` on the commanded
+    joint targets, ``latency_ms`` (mean policy-call latency, NaN if not
+    measured), ``hold_ticks``.
+    """
+    if not isinstance(record, EpisodeRecord):
+        raise ValueError(f"record must be an EpisodeRecord, got {type(record).__name__}")
+    a = record.actions[:, JOINT_DIMS]
+    out = {"success": bool(record.success), "completed": int(record.num_completed),
+           "completion": record.num_completed / NUM_OBJECTS}
+    dur_steps = record.success_step if record.success and record.success_step else max(record.steps, 1)
+    out["duration_s"] = dur_steps * record.dt
+    out["throughput"] = record.num_completed / (out["duration_s"] / 60.0)
+    for k in (1, 2, 3):
+        out[f"D{k}"] = rmetrics.difference_norm(a, k) if a.shape[0] > k else float("nan")
+    has_switch = a.shape[0] > 1 and np.any(record.chunk_index[1:] != record.chunk_index[:-1])
+    out["boundary"] = rmetrics.boundary_jump(a, record.chunk_index) if has_switch else float("nan")
+    lat = record.latencies_s[np.isfinite(record.latencies_s)]
+    out["latency_ms"] = float(np.mean(lat) * 1e3) if lat.size else float("nan")
+    out["hold_ticks"] = int(np.sum(record.hold)) if record.hold is not None else 0
+    out["fault"] = record.fault
+    return out

@@ -1,0 +1,342 @@
+"""Real-time runtime for the arm: fixed-rate control thread, inference worker thread (spec chapter R).
+
+The control loop ticks at ``control_hz`` on the wall clock in the calling
+thread; policy inference runs in a worker thread. The delay passed to the
+sampler is predicted from recent realized delays ([R-3]); the realized delay
+of each chunk is measured in ticks ([R-2]) and decides how many ticks run
+from the previous chunk ([R-4]). A chunk that misses the buffered actions is
+rejected and the arm holds its last command ([R-5], [R-6]); a crashed worker
+ends the episode cleanly ([R-7]).
+
+Every wall-clock read is ``time.perf_counter``; the simulation itself never
+reads a clock ([A-4]).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import queue
+import threading
+import time
+import traceback
+
+import jax
+import numpy as np
+
+from softrtc.jax import executor as jexec
+
+from .env import ACTION_DIM, ArmConfig, ArmSortEnv
+from .executor import EpisodeRecord
+
+__all__ = ["RuntimeConfig", "run_realtime_episode", "predict_delay", "jitter_summary"]
+
+
+@dataclasses.dataclass(frozen=True)
+class RuntimeConfig:
+    """Runtime parameters ([R-1]..[R-8]).
+
+    ``added_latency_s``: extra seconds the worker waits after each policy
+    call, to play a slower model ([R-8]); ``latency_window``: k of the delay
+    prediction rule ([R-3]); ``max_hold_ticks``: consecutive hold ticks after
+    which the episode ends with a ``stall`` fault ([R-6]); ``join_timeout_s``:
+    how long the runtime waits for the worker at the end ([R-7]).
+    """
+
+    added_latency_s: float = 0.055
+    latency_window: int = 5
+    max_hold_ticks: int = 50
+    join_timeout_s: float = 2.0
+
+    def __post_init__(self):
+        for name, lo, hi in (("added_latency_s", 0.0, 10.0), ("join_timeout_s", 0.0, 60.0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
+                raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {v!r}")
+        for name, lo, hi in (("latency_window", 1, 1000), ("max_hold_ticks", 1, 10**6)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
+
+
+def predict_delay(recent_delays, max_delay: int) -> int:
+    """[R-3] Predicted delay: max of the recent realized delays, at least 1, at most ``max_delay``.
+
+    A realized delay above ``max_delay`` cannot be conditioned on ([X-1]); it
+    makes the prediction ``max_delay`` and the chunk will be late ([R-5]).
+    """
+    if isinstance(max_delay, bool) or not isinstance(max_delay, (int, np.integer)) or max_delay < 1:
+        raise ValueError(f"max_delay must be an integer >= 1, got {max_delay!r}")
+    r = list(recent_delays)
+    if not r or any(isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < 0 for x in r):
+        raise ValueError(f"recent_delays must be a non-empty sequence of integers >= 0, got {r!r}")
+    return int(min(max(max(r), 1), max_delay))
+
+
+def jitter_summary(periods_s) -> dict:
+    """p50, p99 and max of control-loop periods in ms, and the share of periods over 1.5 dt is left to callers."""
+    p = np.asarray(periods_s, np.float64)
+    if p.ndim != 1 or p.size < 1 or not np.all(np.isfinite(p)):
+        raise ValueError("periods_s must be a non-empty 1-D array of finite periods")
+    return {"p50_ms": float(np.percentile(p, 50) * 1e3), "p99_ms": float(np.percentile(p, 99) * 1e3),
+            "max_ms": float(p.max() * 1e3), "mean_ms": float(p.mean() * 1e3), "n": int(p.size)}
+
+
+class _Worker(threading.Thread):
+    """Inference thread: one request at a time; results and exceptions go to ``out`` ([R-1], [R-7])."""
+
+    def __init__(self, policy, added_latency, out: queue.Queue):
+        super().__init__(daemon=True, name="softrtc-arm-inference")
+        self.policy, self.added_latency, self.out = policy, added_latency, out
+        self.s = policy.s
+        self.requests: queue.Queue = queue.Queue()
+
+    def warm(self, H: int) -> None:
+        # Compile the key and prior ops before the clock starts: a first-use compilation
+        # inside the loop would read as a late chunk.
+        jax.block_until_ready(jax.random.fold_in(jax.random.key(0), 1))
+        jax.block_until_ready(jexec.shift_prior(np.zeros((H, ACTION_DIM)), self.s))
+
+    def run(self):
+        while True:
+            req = self.requests.get()
+            if req is None:
+                return
+            c, obs, prev, d, key, t_req = req
+            try:
+                # Keys and priors are computed here so the control thread never dispatches JAX work.
+                key = jax.random.fold_in(key, c)
+                prior = None if prev is None else np.asarray(jexec.shift_prior(prev, self.s), np.float64)
+                chunk = np.asarray(self.policy.generate(obs, prior, d, key), np.float64)
+                extra = self.added_latency(c) if callable(self.added_latency) else self.added_latency
+                t_compute = time.perf_counter() - t_req
+                # Holding the result back plays a slower model; it does not block the control loop.
+                if extra > 0:
+                    time.sleep(extra)
+                self.out.put(("chunk", c, chunk, time.perf_counter(), t_compute))
+            except BaseException as exc:  # noqa: BLE001 - any failure of the worker is reported, never raised here
+                self.out.put(("error", c, f"{type(exc).__name__}: {exc}", time.perf_counter(),
+                              traceback.format_exc()))
+                return
+
+
+def _sleep_until(t: float) -> None:
+    while True:
+        rest = t - time.perf_counter()
+        if rest <= 0:
+            return
+        time.sleep(rest)
+
+
+def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = RuntimeConfig(), *,
+                         max_steps: int | None = None, env_config: ArmConfig | None = None,
+                         added_latency=None) -> EpisodeRecord:
+    """One arm episode in the real-time runtime ([R-1]..[R-9]).
+
+    ``policy`` has ``H``, ``s`` and ``generate(obs, prior, d, key)``; request
+    ``c`` uses ``jax.random.fold_in(key, c)``. ``added_latency`` (optional)
+    overrides ``config.added_latency_s`` with a callable ``c -> seconds`` (to
+    inject stalls); an exception raised by ``generate`` is a worker crash
+    ([R-7]). The episode ends when the environment is done ([A-11]), after
+    ``max_steps`` ticks, or at a fault ([R-6], [R-7]). Outcomes depend on
+    wall-clock timing and are not bitwise reproducible.
+    """
+    H = getattr(policy, "H", None)
+    s = getattr(policy, "s", None)
+    if not (isinstance(H, int) and isinstance(s, int) and 1 <= s < H) or not callable(getattr(policy, "generate", None)):
+        raise ValueError("policy must provide integers H, s (1 <= s < H) and generate(obs, prior, d, key)")
+    if isinstance(env_seed, bool) or not isinstance(env_seed, (int, np.integer)) or env_seed < 0:
+        raise ValueError(f"env_seed must be an integer >= 0, got {env_seed!r}")
+    if not isinstance(key, jax.Array) or not jax.numpy.issubdtype(key.dtype, jax.dtypes.prng_key):
+        raise ValueError("key must be a typed JAX PRNG key (jax.random.key(seed))")
+    if not isinstance(config, RuntimeConfig):
+        raise ValueError(f"config must be a RuntimeConfig, got {type(config).__name__}")
+    if added_latency is not None and not callable(added_latency):
+        raise ValueError("added_latency must be None or a callable c -> seconds")
+    env = ArmSortEnv(env_config)
+    limit = env.config.max_steps if max_steps is None else max_steps
+    if isinstance(limit, bool) or not isinstance(limit, (int, np.integer)) or not 1 <= limit <= env.config.max_steps:
+        raise ValueError(f"max_steps must be an integer in [1, {env.config.max_steps}], got {max_steps!r}")
+    dt = env.config.dt
+    d_max = min(s, H - s)
+
+    results: queue.Queue = queue.Queue()
+    worker = _Worker(policy, added_latency if added_latency is not None else config.added_latency_s, results)
+    worker.warm(H)
+    worker.start()
+
+    # Per-chunk log.
+    chunks, req_step, d_pred, d_exec, d_real, lat, accepted = [], [], [], [], [], [], []
+    # Per-tick log.
+    actions, ci, ti, qs, hold, periods = [], [], [], [], [], []
+    events: list = []
+    fault = None
+    info = {"success": False, "num_completed": 0, "success_step": None}
+
+    t_req_of: dict = {}
+    in_flight: set = set()
+
+    def request(c, obs, prev, d, tick):
+        t_req = time.perf_counter()
+        t_req_of[c] = t_req
+        in_flight.add(c)
+        chunks.append(None)
+        req_step.append(tick)
+        d_pred.append(d)
+        d_exec.append(-1)
+        d_real.append(-1)
+        lat.append(float("nan"))
+        accepted.append(False)
+        worker.requests.put((c, np.array(obs), None if prev is None else np.array(prev), d, key, t_req))
+
+    obs = env.reset(int(env_seed))
+    try:
+        # [X-2] / [R-2] start: request 0 (d = 0, no prior); the clock starts when it is back.
+        request(0, obs, None, 0, 0)
+        msg = results.get()
+        in_flight.discard(0)
+        if msg[0] == "error":
+            fault = f"worker_error: {msg[2]}"
+            events.append((0, "worker_error", msg[4]))
+            raise _End
+        _, _, chunk0, t_done, _ = msg
+        lat[0] = t_done - t_req_of[0]
+        chunks[0] = chunk0
+        d_real[0] = d_exec[0] = 0
+        accepted[0] = True
+        recent = [int(math.ceil(lat[0] / dt))]  # [R-3] the first latency, in ticks
+        cur, cur_base = 0, 0          # the executing chunk and the tick of its request
+        pending = None                # (c, request tick, predicted d) in flight
+        ready = None                  # (c, request tick, exec delay) accepted, waiting for its switch tick
+        restart = False               # [R-5] a rejected chunk: the next request starts afresh
+        last_cmd = None
+        holds_in_row = 0
+        next_c = 1
+        T0 = time.perf_counter()
+        last_tick_time = None
+        k = 0
+        while not env.done and k < limit:
+            _sleep_until(T0 + k * dt)
+            now = time.perf_counter()
+            if last_tick_time is not None:
+                periods.append(now - last_tick_time)
+            last_tick_time = now
+
+            # Collect a finished request ([R-2]).
+            while True:
+                try:
+                    msg = results.get_nowait()
+                except queue.Empty:
+                    break
+                if msg[0] == "error":
+                    fault = f"worker_error: {msg[2]}"
+                    events.append((k, "worker_error", msg[4]))
+                    break
+                _, c, chunk, t_done, _ = msg
+                in_flight.discard(c)
+                lat[c] = t_done - t_req_of[c]
+                chunks[c] = chunk
+                if pending is None or pending[0] != c:
+                    continue  # already declared late and rejected at its deadline
+                _, r, dp = pending
+                pending = None
+                dr = k - r
+                d_real[c] = dr
+                recent = (recent + [dr])[-config.latency_window:]
+                if chunk.shape != (H, ACTION_DIM) or not np.all(np.isfinite(chunk)):
+                    fault = f"worker_error: chunk {c} has shape {list(chunk.shape)} or non-finite values"
+                    events.append((k, "bad_chunk", c))
+                    break
+                # [R-4] execute from the previous chunk for max(predicted, realized) ticks.
+                de = max(dp, dr)
+                d_exec[c] = de
+                accepted[c] = True
+                ready = (c, r, de)
+            if fault is not None:
+                raise _End
+
+            # [R-5] deadline: a chunk not back by tick r + d_max is late (prev[s + d_max] may not exist).
+            if pending is not None and k - pending[1] >= d_max:
+                c_late = pending[0]
+                events.append((k, "late_reject", c_late))
+                d_real[c_late] = -2  # marks "rejected late"; its latency is logged on arrival
+                pending = None
+                cur = None
+                restart = True
+            # Switch to the ready chunk at its switch tick ([R-4], [X-4]).
+            if ready is not None and k >= ready[1] + ready[2]:
+                cur, cur_base = ready[0], ready[1]
+                ready = None
+                events.append((k, "switch", cur))
+
+            # Issue the next request ([X-1], [X-3], [R-3]).
+            if pending is None and ready is None and not (cur is None and not restart):
+                if restart and not in_flight:
+                    # Only once the worker is idle: the restart must see a fresh observation.
+                    c = next_c
+                    next_c += 1
+                    request(c, obs, None, 0, k)
+                    pending = (c, k, 0)
+                    restart = False
+                    events.append((k, "restart_request", c))
+                elif not restart and k == cur_base + s:
+                    dp = predict_delay(recent, d_max)
+                    c = next_c
+                    next_c += 1
+                    request(c, obs, chunks[cur], dp, k)  # the worker shifts it into the prior ([X-3])
+                    pending = (c, k, dp)
+
+            # [R-4] / [R-5] choose the command: an aligned token, else hold.
+            j = None if cur is None else k - cur_base
+            if j is not None and j < H:
+                a = chunks[cur][j]
+                ci.append(cur)
+                ti.append(j)
+                hold.append(False)
+                holds_in_row = 0
+            else:
+                if last_cmd is None:
+                    fault = "hold_before_first_command"
+                    raise _End
+                a = last_cmd
+                ci.append(-1)
+                ti.append(-1)
+                hold.append(True)
+                holds_in_row += 1
+                if holds_in_row == 1:
+                    events.append((k, "hold_start", None))
+            qs.append(obs[0:3].copy())
+            obs, info = env.step(a)
+            actions.append(np.asarray(a, np.float64))
+            last_cmd = actions[-1]
+            k += 1
+            if holds_in_row >= config.max_hold_ticks:
+                fault = f"stall: {holds_in_row} consecutive hold ticks"
+                events.append((k, "stall", None))
+                break
+    except _End:
+        pass
+    finally:
+        worker.requests.put(None)
+        worker.join(timeout=config.join_timeout_s)
+        if worker.is_alive():
+            events.append((len(actions), "worker_not_joined", None))
+
+    n = len(actions)
+    keep = [i for i, ch in enumerate(chunks) if ch is not None]
+    full = np.full((len(chunks), H, ACTION_DIM), np.nan)
+    for i in keep:
+        full[i] = chunks[i]
+    return EpisodeRecord(
+        method=str(getattr(policy, "method", "unknown")), env_seed=int(env_seed),
+        actions=np.asarray(actions, np.float64).reshape(n, ACTION_DIM), chunk_index=np.asarray(ci, int),
+        token_index=np.asarray(ti, int), joint_pos=np.asarray(qs).reshape(n, 3), chunks=full,
+        request_step=np.asarray(req_step, int), delays=np.asarray(d_pred, int), exec_delays=np.asarray(d_exec, int),
+        realized_delays=np.asarray(d_real, int), latencies_s=np.asarray(lat, np.float64),
+        success=bool(info["success"]), num_completed=int(info["num_completed"]),
+        success_step=info["success_step"], steps=n, dt=dt, hold=np.asarray(hold, bool),
+        periods_s=np.asarray(periods, np.float64), accepted=np.asarray(accepted, bool), fault=fault, events=events)
+
+
+class _End(Exception):
+    """Internal: leave the control loop at a fault."""
