@@ -64,7 +64,7 @@ def test_torch_adapters_pass(impl, vector_files):
 
 @pytest.mark.skipif(not HAS_TORCH, reason="torch not installed")
 def test_torch_adapter_by_path_and_module():
-    """[CF-12] Adapters load by built-in name, by file path with :ATTR and by module:ATTR."""
+    """[CF-12], [CF-7] Adapters load by built-in name, by file path with :ATTR and by module:ATTR."""
     a = load_adapter(str(ROOT / "conformance" / "torch_port" / "adapter_flipped.py") + ":ADAPTER")
     assert a.name == "torch-flipped" and a.time_convention == "noise_at_1"
     assert load_adapter("softrtc.conformance.adapters.reference:ADAPTER").name == "reference"
