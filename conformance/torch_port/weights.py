@@ -8,6 +8,7 @@ fixed with "length" = h, hard); window = {"rule", "schedule", "parametrization",
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import torch
 
@@ -27,7 +28,8 @@ def endpoint(rule: dict, d: int) -> int:
         lam = real("lam", rule.get("lam"), 0.0, MAX_WINDOW)
         h_max = integer("h_max", rule.get("h_max"), 0, MAX_WINDOW)
         # lam is a multiple of 1/4 in practice, so lam * d is exact in binary ([E-2]).
-        return 0 if d == 0 else min(math.ceil(lam * d), h_max)
+        # Fraction: the exact value of the float, so the ceiling is exact ([E-2]).
+        return 0 if d == 0 else min(math.ceil(Fraction(lam) * d), h_max)
     if kind == "offset":
         L = integer("length", rule.get("length"), 0, MAX_WINDOW)
         h_max = integer("h_max", rule.get("h_max"), 0, MAX_WINDOW)
@@ -45,7 +47,8 @@ def _schedule(name: str, x: torch.Tensor) -> torch.Tensor:
     if name == "ones":
         return torch.ones_like(x)
     u = 1.0 - x
-    return u if name == "linear" else u * torch.expm1(u) / (math.e - 1.0)
+    # expm1(1) in the denominator, as in [W-3], so that g(0) is exactly 1.
+    return u if name == "linear" else u * torch.expm1(u) / torch.expm1(torch.ones((), dtype=u.dtype))
 
 
 def prefix_weights(H: int, d: int, e: int, schedule: str = "linear", parametrization: str = "rtc") -> torch.Tensor:
