@@ -1,0 +1,199 @@
+"""``softrtc kinetix {eval, finetune, bench}`` ([KE-12]).
+
+JAX, flax and kinetix are imported when a subcommand runs, so ``softrtc
+--help`` stays fast; a missing dependency is reported by the top-level CLI
+with its install hint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+for _dep in ("jax", "flax", "kinetix"):
+    if importlib.util.find_spec(_dep) is None:
+        raise ModuleNotFoundError(f"softrtc kinetix needs {_dep}", name=_dep)
+
+
+def _csv(text: str) -> list[str]:
+    return [p.strip() for p in text.split(",") if p.strip()]
+
+
+def _fail(cmd: str, exc: BaseException) -> int:
+    print(f"softrtc kinetix {cmd}: error: {exc}", file=sys.stderr)
+    return 2
+
+
+def add_subparsers(subparsers) -> None:
+    """Register the ``kinetix`` command and its subcommands on a top-level ``subparsers``."""
+    kin = subparsers.add_parser("kinetix", help="Kinetix benchmark: evaluate, fine-tune release policies, bench")
+    sub = kin.add_subparsers(dest="kinetix_command", metavar="SUBCOMMAND")
+    kin.set_defaults(func=lambda args: (kin.print_help(), 0)[1])
+
+    ev = sub.add_parser("eval", help="run the evaluation protocol and write CSV + Markdown results")
+    ev.add_argument("--levels", default=None, help="comma-separated level names (default: all 12)")
+    ev.add_argument("--episodes", type=int, default=32, help="episodes per level, delay and method (default 32)")
+    ev.add_argument("--methods", default=None,
+                    help="comma-separated methods: naive, inference_hard, inference_soft, train_hard, train_soft, "
+                         "train_soft:delay_scaled:LAM[:H_MAX], train_soft:offset:L[:H_MAX], train_soft:fixed:H "
+                         "(default: the paper's main-table rows)")
+    ev.add_argument("--delays", default="0,1,2,3,4", help="comma-separated delays (default 0,1,2,3,4)")
+    src = ev.add_mutually_exclusive_group()
+    src.add_argument("--policy-dir", default=None,
+                     help="per-level policies: <level>.npz checkpoints or release worlds_l_<level>.pkl files")
+    src.add_argument("--init-seed", type=int, default=None,
+                     help="evaluate a freshly initialised benchmark-size policy with this seed (default 0)")
+    ev.add_argument("--method-policy", action="append", default=[], metavar="METHOD=DIR",
+                    help="policy directory for one method (e.g. train_hard=ft/hard); repeatable")
+    ev.add_argument("--levels-dir", default=None, help="directory of the level JSON files")
+    ev.add_argument("--seed", type=int, default=0, help="rollout seed (default 0)")
+    ev.add_argument("--out", required=True, help="output directory")
+    ev.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    ev.set_defaults(func=_eval)
+
+    ft = sub.add_parser("finetune", help="fine-tune release bc policies for one epoch as hard or soft RTC")
+    ft.add_argument("--data", required=True, help="directory of worlds_l_<level>.npz expert data")
+    ft.add_argument("--bc", required=True, help="release bc directory (worlds_l_<level>.pkl files)")
+    ft.add_argument("--method", required=True, choices=("hard", "soft"))
+    ft.add_argument("--window", default=None,
+                    help="soft window rule: delay_scaled:LAM[:H_MAX] (default delay_scaled:2:5), offset:L[:H_MAX], "
+                         "fixed:H, optionally ':zeros'")
+    ft.add_argument("--levels", default=None, help="comma-separated levels (default: those with data files)")
+    ft.add_argument("--epochs", type=int, default=1)
+    ft.add_argument("--batch-size", type=int, default=256)
+    ft.add_argument("--lr", type=float, default=3e-4)
+    ft.add_argument("--d-max", type=int, default=4, help="largest training delay (default 4)")
+    ft.add_argument("--seed", type=int, default=0)
+    ft.add_argument("--out", required=True, help="output directory for <level>.npz checkpoints")
+    ft.add_argument("--no-progress", action="store_true")
+    ft.set_defaults(func=_finetune)
+
+    be = sub.add_parser("bench", help="harness env steps/s vs bare env steps/s, and rollout compile time")
+    be.add_argument("--level", default="grasp_easy")
+    be.add_argument("--num-envs", type=int, default=64)
+    be.add_argument("--method", default="naive")
+    be.add_argument("--repeats", type=int, default=1)
+    be.add_argument("--seed", type=int, default=0)
+    be.add_argument("--levels-dir", default=None)
+    be.add_argument("--out", default=None, help="optional JSON output file")
+    be.add_argument("--no-progress", action="store_true")
+    be.set_defaults(func=_bench)
+
+
+def _eval(args) -> int:
+    try:
+        return _eval_inner(args)
+    except (ValueError, FileNotFoundError) as exc:
+        return _fail("eval", exc)
+
+
+def _eval_inner(args) -> int:
+    import flax.nnx as nnx
+
+    from softrtc.jax.policy import FlowPolicy, PolicyConfig
+
+    from . import env as kenv
+    from . import harness
+    from .finetune import load_level_policy
+
+    levels = tuple(_csv(args.levels)) if args.levels else kenv.LEVEL_NAMES
+    methods = tuple(_csv(args.methods)) if args.methods else harness.PAPER_METHODS
+    try:
+        delays = tuple(int(d) for d in _csv(args.delays))
+    except ValueError:
+        raise ValueError(f"--delays must be comma-separated integers, got {args.delays!r}") from None
+    config = harness.EvalConfig(levels=levels, methods=methods, delays=delays, episodes=args.episodes,
+                                seed=args.seed, levels_dir=args.levels_dir)
+    kenv.resolve_levels_dir(args.levels_dir, config.levels)  # clear error before anything heavy
+    overrides = {}
+    for item in args.method_policy:
+        m, sep, d = item.partition("=")
+        if not sep or not d:
+            raise ValueError(f"--method-policy must be METHOD=DIR, got {item!r}")
+        if m not in {s.label for s in config.methods}:
+            raise ValueError(f"--method-policy method {m!r} is not among --methods")
+        overrides[m] = d
+    cache: dict = {}
+    fresh = None
+    if args.policy_dir is None:
+        seed = 0 if args.init_seed is None else args.init_seed
+        if seed < 0:
+            raise ValueError(f"--init-seed must be an integer >= 0, got {seed}")
+        fresh = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM, config=PolicyConfig(),
+                           rngs=nnx.Rngs(seed))
+
+    def policies(spec, level):
+        d = overrides.get(spec.label, args.policy_dir)
+        if d is None:
+            return fresh
+        if (d, level) not in cache:
+            cache[(d, level)] = load_level_policy(d, level)
+        return cache[(d, level)]
+
+    result = harness.evaluate(config, policies, progress=not args.no_progress)
+    paths = harness.write_results(result, args.out, bootstrap_resamples=config.bootstrap_resamples,
+                                  bootstrap_seed=config.bootstrap_seed)
+    print(Path(paths["table"]).read_text(), end="")
+    print("compile time per sampler family (s): " +
+          ", ".join(f"{k} {v:.1f}" for k, v in result["compile_s"].items()))
+    print(f"wrote {paths['episodes']}, {paths['per_level']}, {paths['pooled']}, {paths['table']}")
+    return 0
+
+
+def _finetune(args) -> int:
+    try:
+        return _finetune_inner(args)
+    except (ValueError, FileNotFoundError) as exc:
+        return _fail("finetune", exc)
+
+
+def _finetune_inner(args) -> int:
+    from . import data as kdata
+    from . import env as kenv
+    from . import harness
+    from .finetune import finetune_level
+
+    window = None
+    if args.window is not None:
+        if args.method != "soft":
+            raise ValueError("--window is only used with --method soft")
+        window = harness.parse_method("train_soft:" + args.window).window
+    data_dir = Path(args.data)
+    if not data_dir.is_dir():
+        raise FileNotFoundError(f"--data {data_dir} is not a directory")
+    if args.levels:
+        levels = _csv(args.levels)
+    else:
+        levels = [lv for lv in kenv.LEVEL_NAMES if (data_dir / kdata.expert_data_filename(lv)).is_file()]
+        if not levels:
+            raise FileNotFoundError(f"no worlds_l_<level>.npz expert data files in {data_dir}")
+    for lv in levels:
+        meta = finetune_level(data_dir, args.bc, lv, args.method, args.out, window=window,
+                              d_max=args.d_max, batch_size=args.batch_size, learning_rate=args.lr,
+                              epochs=args.epochs, seed=args.seed, progress=not args.no_progress)
+        print(f"{lv}: {meta['steps']} steps on {meta['examples']} examples, final loss "
+              f"{meta['final_loss']:.4g} -> {meta['path']}")
+    return 0
+
+
+def _bench(args) -> int:
+    try:
+        from . import harness
+        res = harness.bench_harness(args.level, num_envs=args.num_envs, method=args.method, seed=args.seed,
+                                    levels_dir=args.levels_dir, repeats=args.repeats,
+                                    progress=not args.no_progress)
+    except (ValueError, FileNotFoundError) as exc:
+        return _fail("bench", exc)
+    print(f"level {res['level']}, {res['num_envs']} envs, {res['env_steps']} env steps, method {res['method']}, "
+          f"policy {res['policy_params']:,} params, {res['num_devices']} device(s): {res['device']}")
+    print(f"harness: {res['harness_steps_per_s']:.0f} env steps/s (run {res['harness_run_s']:.1f} s, "
+          f"compile {res['harness_compile_s']:.1f} s)")
+    print(f"bare env: {res['bare_steps_per_s']:.0f} env steps/s (run {res['bare_run_s']:.1f} s, "
+          f"compile {res['bare_compile_s']:.1f} s)")
+    print(f"ratio harness / bare: {res['ratio']:.3f}")
+    if args.out:
+        Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+    return 0

@@ -1,0 +1,183 @@
+"""Fine-tuning the public release's base policies as training-time RTC ([KE-10], [KE-11]).
+
+The public release ships per-level expert data (``<run>/data/worlds_l_<level>.npz``,
+[K-14]) and per-level base flow policies (``bc/<epoch>/policies/worlds_l_<level>.pkl``,
+pickled ``nnx`` pure dicts, [P-8]). :func:`finetune_level` loads both, trains
+one epoch of hard or soft training-time RTC with :mod:`softrtc.jax.training`
+and writes a :mod:`softrtc.jax.checkpoint` file ``<out>/<level>.npz``.
+:func:`load_level_policy` reads either kind of file back for evaluation.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import pickle
+import re
+from pathlib import Path
+from typing import Any, Mapping
+
+import flax.nnx as nnx
+import jax
+import numpy as np
+
+from softrtc.jax import checkpoint as jckpt
+from softrtc.jax.policy import FlowPolicy, PolicyConfig, load_pure_dict
+from softrtc.jax.training import TrainConfig, train
+from softrtc.reference import weights as ref_weights
+
+from . import data as kdata
+from .env import LEVEL_NAMES
+
+__all__ = ["infer_policy_shape", "find_bc_file", "load_bc_policy", "load_level_policy", "finetune_level"]
+
+
+def _check_level(level: Any) -> str:
+    if level not in LEVEL_NAMES:
+        raise ValueError(f"level must be one of {', '.join(LEVEL_NAMES)}, got {level!r}")
+    return level
+
+
+def _check_dir(name: str, path: Any) -> Path:
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"{name} must be a directory path, got {type(path).__name__}")
+    p = Path(path).expanduser()
+    if not p.is_dir():
+        raise FileNotFoundError(f"{name} {p} is not a directory")
+    return p
+
+
+def _shape(tree: Mapping, *path) -> tuple:
+    node: Any = tree
+    for k in path:
+        if not isinstance(node, Mapping):
+            raise ValueError(f"pure_dict is missing key '{'/'.join(map(str, path))}'")
+        # Layer indices may be ints or digit strings ([P-8]).
+        node = node[k] if k in node else node.get(str(k)) if str(k) in node else None
+        if node is None:
+            raise ValueError(f"pure_dict is missing key '{'/'.join(map(str, path))}'")
+    return tuple(np.shape(node))
+
+
+def infer_policy_shape(pure_dict: Mapping) -> tuple[int, int, PolicyConfig]:
+    """``(obs_dim, action_dim, PolicyConfig)`` of a release pure dict, from its kernel shapes ([P-7], [KE-10]).
+
+    ``in_proj/kernel [A + O, C]``, ``out_proj/kernel [C, A]``,
+    ``mlp_stack/0/token_mix_in/kernel [H, token_hidden]``,
+    ``mlp_stack/0/channel_mix_in/kernel [C, channel_hidden]``, and the number
+    of ``mlp_stack`` entries. The full tree is validated when loaded.
+    """
+    if not isinstance(pure_dict, Mapping):
+        raise ValueError(f"pure_dict must be a nested mapping of arrays, got {type(pure_dict).__name__}")
+    a_in, c = _shape(pure_dict, "in_proj", "kernel")
+    c2, a = _shape(pure_dict, "out_proj", "kernel")
+    stack = pure_dict.get("mlp_stack")
+    if not isinstance(stack, Mapping) or not stack:
+        raise ValueError("pure_dict must have a non-empty 'mlp_stack' mapping")
+    h, th = _shape(pure_dict, "mlp_stack", 0, "token_mix_in", "kernel")
+    _, ch = _shape(pure_dict, "mlp_stack", 0, "channel_mix_in", "kernel")
+    if c2 != c or a_in <= a:
+        raise ValueError(f"pure_dict has inconsistent shapes: in_proj/kernel {(a_in, c)}, out_proj/kernel {(c2, a)}")
+    cfg = PolicyConfig(channel_dim=c, channel_hidden_dim=ch, token_hidden_dim=th, num_layers=len(stack),
+                       action_chunk_size=h)
+    return a_in - a, a, cfg
+
+
+def find_bc_file(bc_dir: str | os.PathLike, level: str) -> Path:
+    """The release policy file of ``level`` under ``bc_dir`` ([P-8], [KE-10]).
+
+    Looked up as ``<bc_dir>/worlds_l_<level>.pkl``, ``<bc_dir>/policies/...``
+    and ``<bc_dir>/<epoch>/policies/...`` (the largest integer epoch).
+    """
+    _check_level(level)
+    d = _check_dir("bc_dir", bc_dir)
+    name = f"worlds_l_{level}.pkl"
+    cands = [d / name, d / "policies" / name]
+    epochs = sorted((int(p.name) for p in d.iterdir() if p.is_dir() and re.fullmatch(r"\d+", p.name)), reverse=True)
+    cands += [d / str(e) / "policies" / name for e in epochs]
+    for c in cands:
+        if c.is_file():
+            return c
+    raise FileNotFoundError(f"no release policy {name} for level {level!r} under {d} "
+                            f"(looked in ., policies/ and <epoch>/policies/)")
+
+
+def load_bc_policy(path: str | os.PathLike) -> FlowPolicy:
+    """A :class:`FlowPolicy` from a release ``.pkl`` pure dict ([P-8]); architecture inferred from it.
+
+    The file is unpickled: load only files you trust.
+    """
+    if not isinstance(path, (str, os.PathLike)) or not Path(path).is_file():
+        raise FileNotFoundError(f"path must name an existing policy file, got {path!r}")
+    with open(path, "rb") as f:
+        pure = pickle.load(f)
+    obs_dim, action_dim, cfg = infer_policy_shape(pure)
+    policy = FlowPolicy(obs_dim=obs_dim, action_dim=action_dim, config=cfg, rngs=nnx.Rngs(0))
+    return load_pure_dict(policy, pure)
+
+
+def load_level_policy(policy_dir: str | os.PathLike, level: str) -> FlowPolicy:
+    """The policy of ``level`` in ``policy_dir`` ([KE-11]): a softrtc checkpoint ``<level>.npz``
+    (:func:`finetune_level`'s output) or else a release file (:func:`find_bc_file`)."""
+    _check_level(level)
+    d = _check_dir("policy_dir", policy_dir)
+    ck = d / f"{level}.npz"
+    if ck.is_file():
+        policy, _ = jckpt.load_checkpoint(ck)
+        return policy
+    return load_bc_policy(find_bc_file(d, level))
+
+
+def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level: str, method: str,
+                   out_dir: str | os.PathLike, *, window: ref_weights.SoftWindow | None = None,
+                   execute_horizon: int = 4, d_max: int = 4, delay_dist: str = "uniform",
+                   batch_size: int = 256, learning_rate: float = 3e-4, epochs: int = 1, seed: int = 0,
+                   progress: bool = True) -> dict:
+    """Fine-tune ``level``'s release policy as training-time RTC and save it ([KE-10]).
+
+    ``method`` is ``"hard"`` or ``"soft"`` ([T-3]; ``window`` is the soft
+    window, default the paper's main setting [W-7]). Examples are the
+    release's chunks ([K-16]..[K-19]); one epoch is ``floor(n / batch_size)``
+    steps (at least one; the batch shrinks to ``n`` for tiny data). Delays
+    are drawn from ``delay_dist`` on ``0 .. d_max`` ([D-1], [D-2]). Writes
+    ``<out_dir>/<level>.npz`` with metadata (level, method, train config,
+    source files, steps, final loss) and returns that metadata plus ``path``.
+    """
+    _check_level(level)
+    if method not in ("hard", "soft"):
+        raise ValueError(f"method must be 'hard' or 'soft', got {method!r}")
+    if window is not None and not isinstance(window, ref_weights.SoftWindow):
+        raise ValueError(f"window must be a softrtc.reference.weights.SoftWindow or None, got {type(window).__name__}")
+    if window is not None and method != "soft":
+        raise ValueError("window is only used with method='soft'")
+    for name, val, lo, hi in (("epochs", epochs, 1, 1000), ("batch_size", batch_size, 1, 1 << 20),
+                              ("seed", seed, 0, 2**32 - 1)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or not lo <= val <= hi:
+            raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {val!r}")
+    data_path = _check_dir("data_dir", data_dir) / kdata.expert_data_filename(level)
+    bc_path = find_bc_file(bc_dir, level)
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise ValueError(f"out_dir must be a directory path, got {type(out_dir).__name__}")
+    data = kdata.load_expert_data(data_path)
+    policy = load_bc_policy(bc_path)
+    if (data.obs_dim, data.action_dim) != (policy.obs_dim, policy.action_dim):
+        raise ValueError(f"expert data dims (obs {data.obs_dim}, action {data.action_dim}) differ from the policy's "
+                         f"(obs {policy.obs_dim}, action {policy.action_dim}) for level {level!r}")
+    H = policy.action_chunk_size
+    obs, chunks, _ = kdata.make_training_examples(data, H)
+    n = obs.shape[0]
+    bs = min(batch_size, n)
+    steps = max(1, n // bs) * epochs
+    config = TrainConfig(method=method, window=window if window is not None else ref_weights.SoftWindow(),
+                         execute_horizon=execute_horizon, delay_dist=delay_dist, d_min=0, d_max=d_max,
+                         batch_size=bs, learning_rate=learning_rate)
+    tuned, losses = train(policy, (obs.astype(np.float32), chunks.astype(np.float32)), config,
+                          jax.random.key(seed), steps, progress=progress)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{level}.npz"
+    meta = {"level": level, "method": method, "train_config": config.to_dict(), "data_file": str(data_path),
+            "bc_file": str(bc_path), "examples": int(n), "steps": int(steps), "epochs": int(epochs),
+            "seed": int(seed), "final_loss": float(losses[-1]) if math.isfinite(float(losses[-1])) else None}
+    jckpt.save_checkpoint(path, tuned, meta)
+    return meta | {"path": str(path)}
