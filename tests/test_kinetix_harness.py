@@ -1,0 +1,335 @@
+"""Tests of the Kinetix evaluation protocol, release-asset fine-tuning and the CLI ([KE-1]..[KE-12]).
+
+One rollout configuration (training-time sampler family, a small freshly
+initialised policy, 10 envs, 24 steps) is compiled once per module and
+reused by every rollout test and by the end-to-end evaluation.
+"""
+
+from __future__ import annotations
+
+import csv
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("jax")
+pytest.importorskip("kinetix")
+
+import flax.nnx as nnx  # noqa: E402
+import jax  # noqa: E402
+
+from softrtc.jax import checkpoint as jckpt  # noqa: E402
+from softrtc.jax.policy import FlowPolicy, PolicyConfig, state_pure_dict  # noqa: E402
+from softrtc.kinetix import data as kdata  # noqa: E402
+from softrtc.reference import executor as ref_executor  # noqa: E402
+from softrtc.reference import metrics as ref_metrics  # noqa: E402
+from softrtc.reference import methods as ref_methods  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+LEVELS_DIR = (ROOT.parent / "shared" / "kinetix-levels").resolve()
+needs_levels = pytest.mark.skipif(not LEVELS_DIR.is_dir(), reason="needs ../shared/kinetix-levels")
+
+from softrtc.kinetix import harness as H  # noqa: E402
+
+S = 4
+EPISODES = 2
+DELAYS = (0, 1, 2, 3, 4)
+STEPS = 24
+SMALL = PolicyConfig(channel_dim=16, channel_hidden_dim=16, token_hidden_dim=8, num_layers=1, action_chunk_size=8)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    from softrtc.kinetix import env as kenv
+
+    task = kenv.make_env("grasp_easy", LEVELS_DIR)
+    pol = FlowPolicy(obs_dim=task.obs_dim, action_dim=task.action_dim, config=SMALL, rngs=nnx.Rngs(0))
+    n = EPISODES * len(DELAYS)
+    ro = H.make_rollout(task, pol, "rtc", n, episode_steps=STEPS)
+    keys = jax.numpy.tile(H.episode_keys(0, "grasp_easy", EPISODES), len(DELAYS))
+    delays = np.repeat(np.asarray(DELAYS), EPISODES)
+    outs = {m: ro(pol, H.parse_method(m), "grasp_easy", keys, delays)
+            for m in ("naive", "train_hard", "train_soft", "train_soft:offset:0")}
+    return {"task": task, "policy": pol, "rollout": ro, "keys": keys, "delays": delays, "outs": outs}
+
+
+# ----------------------------------------------------------------------------- cheap checks
+
+
+def test_parse_method_and_tables():
+    """KE-2, KE-3, S-6, G-1, W-7, W-8, X-2: method strings, families and per-delay weight tables."""
+    assert H.parse_method("naive").method == "naive"
+    soft = H.parse_method("train_soft")
+    assert soft.window.rule.kind == "delay_scaled" and soft.window.rule.lam == 2.0 and soft.window.rule.h_max == 5
+    off = H.parse_method("train_soft:offset:1")
+    assert off.window.rule.kind == "offset" and off.window.rule.length == 1 and off.window.rule.h_max == 8
+    assert H.parse_method("train_soft:delay_scaled:2:5:zeros").window.overflow == "zeros"
+    assert H.parse_method("train_soft:delay_scaled:1").display == "Train Soft RTC (delay_scaled:1)"
+    for bad in ("", "fancy", "naive:offset:1", "train_soft:offset", "train_soft:offset:x", "train_soft:wide:3"):
+        with pytest.raises(ValueError, match="method"):
+            H.parse_method(bad)
+    assert [H.method_family(m) for m in ref_methods.METHODS] == ["rtc", "guided", "guided", "rtc", "rtc"]
+    for m in ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft"):
+        spec = H.parse_method(m)
+        t = H.rollout_weight_table(spec, 8, S)
+        assert t.shape == (6, 8) and np.all(t[-1] == 0)  # last row: the first chunk, naive ([X-2])
+        for d in range(5):
+            np.testing.assert_allclose(t[d], ref_methods.method_weights(m, 8, S, d, spec.window), atol=1e-6)
+    np.testing.assert_array_equal(H.rollout_weight_table(H.parse_method("train_soft:offset:0"), 8, S),
+                                  H.rollout_weight_table(H.parse_method("train_hard"), 8, S))
+
+
+def test_episode_metrics_truncate():
+    """M-1, M-2, M-4, KE-7: delta and jerk on the executed actions up to the episode's end."""
+    a = np.zeros((10, 2))
+    a[:4, 0] = [0.0, 1.0, 3.0, 6.0]
+    a[4:] = 100.0  # after the episode's end: must not count
+    m = H.episode_metrics(a, 4)
+    assert m["delta"] == pytest.approx(ref_metrics.action_delta(a[:4]))
+    assert m["jerk"] == pytest.approx(1.0)
+    assert np.isnan(H.episode_metrics(a, 2)["jerk"]) and np.isnan(H.episode_metrics(a, 1)["delta"])
+    with pytest.raises(ValueError, match="length"):
+        H.episode_metrics(a, 11)
+
+
+def test_summarize_pools_levels_and_delays():
+    """M-4, M-5, M-7, KE-7, KE-8: per-level means weight delays equally; pooled = mean over levels + bootstrap."""
+    rows = []
+    rng = np.random.default_rng(0)
+    for lv in ("grasp_easy", "catapult", "trampoline"):
+        for d in DELAYS:
+            for e in range(2 if d else 4):  # unequal counts: delays still weigh equally
+                rows.append({"method": "naive", "level": lv, "delay": d, "episode": e, "return": rng.normal(),
+                             "solved": bool(rng.integers(2)), "length": 10, "delta": rng.random(),
+                             "jerk": rng.random()})
+    summ = H.summarize(rows, bootstrap_resamples=500)
+    per = {(r["level"], r["scope"]): r for r in summ["per_level"]}
+    for lv in ("grasp_easy", "catapult", "trampoline"):
+        want = np.mean([np.mean([r["return"] for r in rows if r["level"] == lv and r["delay"] == d]) for d in DELAYS])
+        assert per[(lv, "overall")]["return"] == pytest.approx(want)
+        want_hi = np.mean([np.mean([r["jerk"] for r in rows if r["level"] == lv and r["delay"] == d]) for d in (3, 4)])
+        assert per[(lv, "high")]["jerk"] == pytest.approx(want_hi)
+    pooled = {r["scope"]: r for r in summ["pooled"]}
+    vals = np.array([per[(lv, "overall")]["solved"] for lv in ("grasp_easy", "catapult", "trampoline")])
+    assert pooled["overall"]["solved"] == pytest.approx(vals.mean())
+    lo, hi = ref_metrics.bootstrap_interval(vals, 500, 0)
+    assert (pooled["overall"]["solved_lo"], pooled["overall"]["solved_hi"]) == pytest.approx((lo, hi))
+    table = H.main_table(summ)
+    assert table.splitlines()[0].startswith("| Method | Overall Return | Overall Solve | High-delay Solve | High-delay Jerk")
+    assert "| Base Naive |" in table
+    with pytest.raises(ValueError, match="rows"):
+        H.summarize([])
+
+
+def test_config_and_input_validation():
+    """N-7, X-1, KE-1, KE-9: bad protocol and bench values raise ValueError naming the argument."""
+    assert H.EvalConfig().episodes == 32 and H.EvalConfig().delays == (0, 1, 2, 3, 4)
+    assert H.EvalConfig().execute_horizon == 4 and H.EvalConfig().num_flow_steps == 5
+    for kw, name in (({"levels": ("nope",)}, "levels"), ({"episodes": 0}, "episodes"),
+                     ({"delays": (0, 5)}, "delays"), ({"methods": ("naive", "naive")}, "methods"),
+                     ({"episodes": 2.0}, "episodes"), ({"seed": -1}, "seed")):
+        with pytest.raises(ValueError, match=name):
+            H.EvalConfig(**kw)
+    with pytest.raises(ValueError, match="level"):
+        H.episode_keys(0, "nope", 2)
+    with pytest.raises(ValueError, match="window"):
+        H.MethodSpec("train_hard", window=H.parse_method("train_soft").window)
+    with pytest.raises(ValueError, match="level"):
+        H.bench_harness("nope")
+
+
+# ----------------------------------------------------------------------------- rollouts
+
+
+@pytest.mark.slow
+@needs_levels
+def test_zero_delay_identical_for_training_samplers(setup):
+    """S-7, X-2, W-9, KE-3: at d = 0 no-RTC, hard and soft training-time samplers execute identical actions."""
+    outs, d0 = setup["outs"], setup["delays"] == 0
+    for m in ("train_hard", "train_soft"):
+        np.testing.assert_array_equal(outs[m]["actions"][d0], outs["naive"]["actions"][d0])
+        np.testing.assert_array_equal(outs[m]["chunks"][d0], outs["naive"]["chunks"][d0])
+    # The first chunk of every episode is the naive sampler whatever the method and delay ([X-2]).
+    np.testing.assert_array_equal(outs["train_soft"]["chunks"][:, 0], outs["naive"]["chunks"][:, 0])
+    # With a delay the methods do differ (the test is not vacuous).
+    assert not np.array_equal(outs["train_hard"]["actions"][~d0], outs["naive"]["actions"][~d0])
+
+
+@pytest.mark.slow
+@needs_levels
+def test_offset_zero_equals_hard(setup):
+    """E-3, W-8: train_soft with the offset rule L = 0 is exactly Hard RTC in closed loop."""
+    outs = setup["outs"]
+    np.testing.assert_array_equal(outs["train_soft:offset:0"]["actions"], outs["train_hard"]["actions"])
+    np.testing.assert_array_equal(outs["train_soft:offset:0"]["chunks"], outs["train_hard"]["chunks"])
+
+
+@pytest.mark.slow
+@needs_levels
+def test_chunk_switch_executes_committed_prefix(setup):
+    """X-3, X-4, KE-6: each segment runs prev[s : s + d] then new[d : s]."""
+    for m, out in setup["outs"].items():
+        acts, chunks = out["actions"], out["chunks"]
+        C = chunks.shape[1]
+        assert acts.shape == (len(setup["delays"]), C * S, 6)
+        for e, d in enumerate(setup["delays"]):
+            np.testing.assert_array_equal(acts[e, :S], chunks[e, 0, :S])
+            for c in range(1, C):
+                seg = acts[e, c * S:(c + 1) * S]
+                np.testing.assert_array_equal(seg[:d], chunks[e, c - 1, S:S + d], err_msg=f"{m} env {e} chunk {c}")
+                np.testing.assert_array_equal(seg[d:], chunks[e, c, d:S], err_msg=f"{m} env {e} chunk {c}")
+
+
+@pytest.mark.slow
+@needs_levels
+def test_matches_reference_executor(setup):
+    """X-2, X-5, KE-6: the executed sequence equals softrtc.reference.executor.execute_chunks on the chunks generated."""
+    for out in setup["outs"].values():
+        C = out["chunks"].shape[1]
+        for e, d in enumerate(setup["delays"]):
+            ref = ref_executor.execute_chunks(out["chunks"][e].astype(np.float64), [0] + [int(d)] * (C - 1), S)
+            np.testing.assert_array_equal(out["actions"][e], ref["actions"].astype(np.float32))
+
+
+@pytest.mark.slow
+@needs_levels
+def test_same_seed_same_rollout(setup):
+    """N-9, KE-5: the same keys give the same rollout; other keys give another."""
+    ro, pol, keys, delays = setup["rollout"], setup["policy"], setup["keys"], setup["delays"]
+    again = ro(pol, H.parse_method("naive"), "grasp_easy", keys, delays)
+    for k in ("actions", "chunks", "return", "length", "solved"):
+        np.testing.assert_array_equal(again[k], setup["outs"]["naive"][k])
+    other = jax.numpy.tile(H.episode_keys(1, "grasp_easy", EPISODES), len(DELAYS))
+    assert not np.array_equal(ro(pol, H.parse_method("naive"), "grasp_easy", other, delays)["actions"],
+                              again["actions"])
+    with pytest.raises(ValueError, match="delays"):
+        ro(pol, H.parse_method("naive"), "grasp_easy", keys, np.full(len(delays), 5))
+    with pytest.raises(ValueError, match="family"):
+        ro(pol, H.parse_method("inference_hard"), "grasp_easy", keys, delays)
+
+
+@pytest.mark.slow
+@needs_levels
+def test_rollout_mesh_over_env_axis(setup):
+    """KE-4: the env axis is sharded over a 1-D mesh of every device (one CPU device here)."""
+    ro = setup["rollout"]
+    assert ro.mesh.axis_names == ("env",) and ro.num_devices == len(jax.devices())
+    assert ro.padded % ro.num_devices == 0 and ro.padded >= ro.num_envs
+
+
+@pytest.mark.slow
+@needs_levels
+def test_evaluate_end_to_end(setup, tmp_path):
+    """KE-1, KE-7, KE-8, M-4, X-6: evaluate two levels, write CSV and the Markdown table (reuses the compile)."""
+    cfg = H.EvalConfig(levels=("grasp_easy", "cartpole_thrust"), methods=("naive", "train_hard", "train_soft"),
+                       episodes=EPISODES, episode_steps=STEPS, levels_dir=str(LEVELS_DIR))
+    res = H.evaluate(cfg, setup["policy"], progress=False)
+    rows = res["episodes"]
+    assert len(rows) == 3 * 2 * len(DELAYS) * EPISODES
+    assert all(1 <= r["length"] <= STEPS for r in rows)
+    g = {(r["method"], r["level"], r["delay"], r["episode"]): r for r in rows}
+    # Same keys for every method: at d = 0 the training-time samplers reproduce naive exactly ([S-7]).
+    for lv in cfg.levels:
+        for e in range(EPISODES):
+            for m in ("train_hard", "train_soft"):
+                assert g[(m, lv, 0, e)]["return"] == g[("naive", lv, 0, e)]["return"]
+    # grasp_easy rows reproduce the fixture's direct rollout.
+    out = setup["outs"]["naive"]
+    for i, d in enumerate(setup["delays"]):
+        assert g[("naive", "grasp_easy", int(d), i % EPISODES)]["return"] == pytest.approx(float(out["return"][i]))
+    paths = H.write_results(res, tmp_path, bootstrap_resamples=200)
+    with open(paths["pooled"]) as f:
+        pooled = list(csv.DictReader(f))
+    assert {(r["method"], r["scope"]) for r in pooled} == {(m, s) for m in ("naive", "train_hard", "train_soft")
+                                                          for s in ("overall", "high")}
+    table = Path(paths["table"]).read_text()
+    assert "| Train Hard RTC |" in table and "| Train Soft RTC |" in table
+
+
+# ----------------------------------------------------------------------------- release assets
+
+
+def _write_release(tmp_path, obs_dim=5, action_dim=2):
+    """Tiny files in exactly the release formats: expert .npz ([K-14]) and a pickled pure dict ([P-8])."""
+    cfg = PolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1, action_chunk_size=8)
+    pol = FlowPolicy(obs_dim=obs_dim, action_dim=action_dim, config=cfg, rngs=nnx.Rngs(3))
+    bc = tmp_path / "bc" / "24" / "policies"
+    bc.mkdir(parents=True)
+    with open(bc / "worlds_l_grasp_easy.pkl", "wb") as f:
+        pickle.dump(jax.tree.map(np.asarray, state_pure_dict(pol)), f)
+    rng = np.random.default_rng(0)
+    S_, E_ = 24, 2
+    done = np.zeros((S_, E_), bool)
+    done[10, 0] = True
+    arrays = {"obs": rng.normal(size=(S_, E_, obs_dim)).astype(np.float32),
+              "action": rng.uniform(-1, 1, size=(S_, E_, action_dim)).astype(np.float32),
+              "done": done, "solved": done.astype(np.float32), "return_": np.zeros((S_, E_), np.float32),
+              "length": np.zeros((S_, E_), np.float32)}
+    data = tmp_path / "data"
+    data.mkdir()
+    np.savez(data / kdata.expert_data_filename("grasp_easy"), **arrays)
+    return pol, tmp_path / "bc", data
+
+
+def test_release_policy_loader(tmp_path):
+    """P-7, P-8, KE-10, KE-11: a pickled release pure dict loads with its architecture inferred."""
+    from softrtc.kinetix import finetune as ft
+
+    pol, bc, _ = _write_release(tmp_path)
+    assert ft.find_bc_file(bc, "grasp_easy").name == "worlds_l_grasp_easy.pkl"
+    loaded = ft.load_level_policy(bc, "grasp_easy")
+    assert (loaded.obs_dim, loaded.action_dim, loaded.config) == (pol.obs_dim, pol.action_dim, pol.config)
+    for a, b in zip(jax.tree.leaves(state_pure_dict(loaded)), jax.tree.leaves(state_pure_dict(pol))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(FileNotFoundError, match="catapult"):
+        ft.find_bc_file(bc, "catapult")
+    with pytest.raises(ValueError, match="level"):
+        ft.find_bc_file(bc, "nope")
+
+
+@pytest.mark.slow
+def test_finetune_soft_and_cli_hard(tmp_path, capsys):
+    """KE-10, KE-11, KE-12, T-3, K-16: one epoch of soft (API) and hard (CLI) RTC on release-format files."""
+    from softrtc.cli import main
+    from softrtc.kinetix import finetune as ft
+
+    pol, bc, data = _write_release(tmp_path)
+    meta = ft.finetune_level(data, bc, "grasp_easy", "soft", tmp_path / "soft", batch_size=8, progress=False)
+    assert meta["steps"] == (2 * 24 - 8 + 1) // 8 and meta["method"] == "soft"
+    tuned, header_meta = jckpt.load_checkpoint(meta["path"])
+    assert header_meta["train_config"]["method"] == "soft" and header_meta["level"] == "grasp_easy"
+    assert tuned.config == pol.config
+    changed = [not np.array_equal(np.asarray(a), np.asarray(b))
+               for a, b in zip(jax.tree.leaves(state_pure_dict(tuned)), jax.tree.leaves(state_pure_dict(pol)))]
+    assert any(changed)
+    again = ft.load_level_policy(tmp_path / "soft", "grasp_easy")
+    for a, b in zip(jax.tree.leaves(state_pure_dict(again)), jax.tree.leaves(state_pure_dict(tuned))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    rc = main(["kinetix", "finetune", "--data", str(data), "--bc", str(bc), "--method", "hard",
+               "--batch-size", "8", "--out", str(tmp_path / "hard"), "--no-progress"])
+    assert rc == 0 and (tmp_path / "hard" / "grasp_easy.npz").is_file()
+    assert "grasp_easy: 5 steps" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="method"):
+        ft.finetune_level(data, bc, "grasp_easy", "none", tmp_path / "x")
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    """KE-12, N-7: bad arguments and missing directories print one clear error line, exit status 2."""
+    from softrtc.cli import main
+
+    cases = [
+        (["kinetix", "eval", "--levels", "grasp_easy,nope", "--out", str(tmp_path)], "levels"),
+        (["kinetix", "eval", "--levels", "grasp_easy", "--levels-dir", str(tmp_path / "none"),
+          "--out", str(tmp_path)], "levels_dir"),
+        (["kinetix", "eval", "--methods", "train_soft:wide", "--out", str(tmp_path)], "method"),
+        (["kinetix", "eval", "--delays", "0,x", "--out", str(tmp_path)], "--delays"),
+        (["kinetix", "finetune", "--data", str(tmp_path / "none"), "--bc", str(tmp_path), "--method", "soft",
+          "--out", str(tmp_path)], "--data"),
+        (["kinetix", "bench", "--level", "nope"], "level"),
+    ]
+    for argv, word in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("softrtc kinetix ") and word in err and "Traceback" not in err, err
