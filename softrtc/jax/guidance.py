@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from softrtc.reference import guidance as _ref
 
 from . import _validate as v
-from .sampler import _at, _check_fn, _check_model, _loop, check_batch, euler_times, naive_conditioning
+from .sampler import _at, _runtime, _check_fn, _check_model, _loop, check_batch, euler_times, naive_conditioning
 from .weights import _prefix
 
 MAX_GUIDANCE = _ref.MAX_GUIDANCE
@@ -58,7 +58,7 @@ def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:
 def _guided(apply_fn, obs, x, y, w, T, beta, unroll):
     """Shared loop: ``apply_fn(k, x, t_k)`` is the velocity at step k ([G-2]..[G-5])."""
     times = euler_times(T)
-    wx = jnp.broadcast_to(w, x.shape[:2])[..., None]
+    (wx,) = _runtime(jnp.broadcast_to(w, x.shape[:2])[..., None])
 
     def step(k, x):
         t = times[k]
@@ -85,10 +85,11 @@ def guided_sample(velocity_fn, obs, noise, prior, weights, num_steps: int,
     _check_fn("velocity_fn", velocity_fn)
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
-    times = euler_times(T)
+    # Same runtime time vector as sampler.naive_sample, so that W = 0 is bitwise naive ([G-6]).
+    times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
 
     def apply_fn(k, x):
-        return velocity_fn(obs, x, jnp.full(x.shape[:2], times[k]))
+        return velocity_fn(obs, x, w0 + (1.0 - w0) * times[k])
 
     return _guided(apply_fn, obs, x, y, w, T, beta, unroll)
 

@@ -79,8 +79,11 @@ def method_weight_table(method: str, H: int, s: int, window=None) -> jax.Array:
 
 
 def _check_first(prior, d):
-    if prior is None and not (not v.is_traced(d) and jnp.ndim(d) == 0 and int(v.int_value("d", d, 0, 0)) == 0):
-        raise ValueError("d must be an integer in [0, 0] for the first chunk (prior=None, [X-2])")
+    """[X-2] The first chunk (prior None) has d = 0; a traced d cannot be checked and is ignored."""
+    if prior is None and not v.is_traced(d):
+        if jnp.ndim(d) != 0:
+            raise ValueError("d must be an integer in [0, 0] for the first chunk (prior=None, [X-2])")
+        v.int_value("d", d, 0, 0)
 
 
 def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_steps: int,

@@ -98,6 +98,19 @@ def _loop(step, x, T, unroll):
     return jax.lax.fori_loop(0, T, step, x)
 
 
+def _runtime(*arrays):
+    """Hide values from XLA's constant folding.
+
+    Times and weights are usually compile-time constants; XLA then folds or
+    rewrites the ops that consume them (e.g. a dot with a broadcast operand),
+    with a different rounding than the same ops on runtime values. Passing
+    them through an optimization barrier makes every sampler evaluate the
+    velocity field on runtime arrays, so that the bitwise identities [S-7]
+    and [G-6] hold between separately compiled samplers.
+    """
+    return jax.lax.optimization_barrier(arrays)
+
+
 def _at(tree, k):
     return jax.tree_util.tree_map(lambda a: a[k], tree)
 
@@ -109,11 +122,12 @@ def naive_sample(velocity_fn, obs, noise, num_steps: int, *, unroll: bool = True
     """Naive Euler sampler ([S-1], [S-2]): x += v(obs, x, t_k 1) / T; returns x^T [B, H, A]."""
     _check_fn("velocity_fn", velocity_fn)
     obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
-    times = euler_times(T)
+    # t_k 1 is computed as the blended time of zero weights, 0 + (1 - 0) t_k (exactly t_k),
+    # so that the RTC sampler with w = 0 runs the same arithmetic ([S-7]).
+    times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
 
     def step(k, x):
-        tv = jnp.full(x.shape[:2], times[k])
-        return x + velocity_fn(obs, x, tv) / T
+        return x + velocity_fn(obs, x, w0 + (1.0 - w0) * times[k]) / T
 
     return _loop(step, x, T, unroll)
 
@@ -125,8 +139,7 @@ def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unrol
     """
     _check_fn("velocity_fn", velocity_fn)
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
-    times = euler_times(T)
-    wb = jnp.broadcast_to(w, x.shape[:2])
+    times, wb = _runtime(euler_times(T), jnp.broadcast_to(w, x.shape[:2]))
     wx = wb[..., None]
 
     def step(k, x):
