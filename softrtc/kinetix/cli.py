@@ -174,8 +174,8 @@ def _finetune_inner(args) -> int:
         meta = finetune_level(data_dir, args.bc, lv, args.method, args.out, window=window,
                               d_max=args.d_max, batch_size=args.batch_size, learning_rate=args.lr,
                               epochs=args.epochs, seed=args.seed, progress=not args.no_progress)
-        print(f"{lv}: {meta['steps']} steps on {meta['examples']} examples, final loss "
-              f"{meta['final_loss']:.4g} -> {meta['path']}")
+        loss = "n/a" if meta["final_loss"] is None else f"{meta['final_loss']:.4g}"
+        print(f"{lv}: {meta['steps']} steps on {meta['examples']} examples, final loss {loss} -> {meta['path']}")
     return 0
 
 
