@@ -212,7 +212,7 @@ def test_none_equals_zero_delay():
 
 
 def test_one_compilation_serves_all_delays(soft_step):
-    """T-7 D-4: d is drawn inside the jitted step; new keys and new steps with equal configs do not recompile."""
+    """T-7 D-4: d is drawn inside the jitted step; new keys, delays, windows or hard/soft do not recompile."""
     from softrtc.jax import training as T
 
     obs, actions = _data(B)
@@ -225,6 +225,13 @@ def test_one_compilation_serves_all_delays(soft_step):
         state, metrics = (soft_step if i % 2 else other)(state, {"obs": obs, "actions": actions}, jax.random.key(i))
         means.add(float(metrics["delay_mean"]))
         assert set(metrics) == {"loss", "grad_norm", "learning_rate", "delay_mean"}
+    # hard, another window and another delay distribution: traced tables, same program.
+    for cfg in (TrainConfig(method="hard", d_max=H, batch_size=B, learning_rate=SOFT.learning_rate),
+                TrainConfig(window=RW.SoftWindow(RE.offset(1, 4), "exp", "paper", "zeros"), d_min=2, d_max=2,
+                            batch_size=B, learning_rate=SOFT.learning_rate)):
+        alt = make_train_step(_policy(2), cfg)
+        _, metrics = alt(alt.init_state(), (obs, actions), jax.random.key(9))
+    assert float(metrics["delay_mean"]) == 2.0
     assert T._update._cache_size() == size
     assert len(means) > 1  # the delays really differ between steps
     assert int(state.step) == 6 and isinstance(state, TrainState)
@@ -266,7 +273,7 @@ def test_optimizer_is_clipped_adamw_with_schedule():
 
 
 def test_step_validates_inputs(soft_step):
-    """T-12 N-7 N-9: batch shapes, dtypes and values, the key and the state are checked before the jit."""
+    """T-10 N-7 N-9: batch shapes, dtypes and values, the key and the state are checked before the jit."""
     obs, actions = _data(B)
     state = soft_step.init_state()
     key = jax.random.key(0)
@@ -316,7 +323,7 @@ def test_train_is_deterministic_and_learns(soft_step):
 
 
 def test_train_with_batch_iterator(soft_step):
-    """T-9 T-12: an iterable of batches is consumed one per step; running out or bad arguments raise."""
+    """T-9 T-10: an iterable of batches is consumed one per step; running out or bad arguments raise."""
     obs, actions = _data(32)
     batches = [(obs[i:i + B], actions[i:i + B]) for i in range(0, 32, B)]
     pol, hist = train(_policy(0), iter(batches), SOFT, jax.random.key(3), 4, progress=False)
@@ -354,7 +361,7 @@ def _write(path, header, members, fix_checksum=True):
 
 
 def test_checkpoint_roundtrip(tmp_path):
-    """T-10: the file is self-describing (tag, version, constructor config, checksum) and round-trips bitwise."""
+    """T-11: the file is self-describing (tag, version, constructor config, checksum) and round-trips bitwise."""
     pol = _policy(4, randomize=True)
     meta = {"step": 12, "train_config": SOFT.to_dict(), "note": "ok"}
     path = tmp_path / "p.npz"
@@ -376,7 +383,7 @@ def test_checkpoint_roundtrip(tmp_path):
 
 
 def test_checkpoint_rejects_damaged_files(tmp_path):
-    """T-11: truncated or garbled bytes, wrong tag or version, checksum and tree mismatches raise ValueError."""
+    """T-12: truncated or garbled bytes, wrong tag or version, checksum and tree mismatches raise ValueError."""
     path = tmp_path / "good.npz"
     C.save_checkpoint(path, _policy(0), {"step": 1})
     raw = path.read_bytes()
@@ -423,7 +430,7 @@ def test_checkpoint_rejects_damaged_files(tmp_path):
 
 
 def test_checkpoint_argument_validation(tmp_path):
-    """T-12 T-10: bad paths, policies and non-JSON metadata are rejected before anything is written."""
+    """T-10 T-11: bad paths, policies and non-JSON metadata are rejected before anything is written."""
     pol = _policy(0)
     with pytest.raises(ValueError, match="metadata"):
         C.save_checkpoint(tmp_path / "a.npz", pol, {"x": float("nan")})

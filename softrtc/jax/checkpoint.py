@@ -1,4 +1,4 @@
-"""Self-describing policy checkpoints (spec chapter T, ``spec/31-training-jax.md``, [T-10], [T-11]).
+"""Self-describing policy checkpoints (spec chapter T, ``spec/31-training-jax.md``, [T-11], [T-12]).
 
 A checkpoint is one ``.npz`` file (a zip archive of ``.npy`` members, read
 with ``allow_pickle=False``, so loading never runs code from the file):
@@ -74,7 +74,7 @@ def _nest(flat: Mapping[str, Any]) -> dict:
 
 
 def checkpoint_checksum(header: Mapping, arrays: Mapping[str, np.ndarray]) -> str:
-    """``"sha256:<hex>"`` of a checkpoint's header (less ``checksum``) and arrays ([T-10]).
+    """``"sha256:<hex>"`` of a checkpoint's header (less ``checksum``) and arrays ([T-11]).
 
     The header enters as canonical JSON (sorted keys, no spaces); each array, in
     sorted name order, as its name, dtype string, shape and C-order bytes.
@@ -102,7 +102,7 @@ def _policy_spec(policy: FlowPolicy) -> dict:
 
 
 def save_checkpoint(path: str | os.PathLike, policy: FlowPolicy, metadata: Mapping | None = None) -> None:
-    """Writes ``policy`` and JSON ``metadata`` to the checkpoint file ``path`` ([T-10]).
+    """Writes ``policy`` and JSON ``metadata`` to the checkpoint file ``path`` ([T-11]).
 
     ``metadata`` must be a mapping with string keys whose values JSON can encode
     (finite numbers, strings, bools, None, lists, dicts), e.g.
@@ -153,7 +153,7 @@ def _fail(path: Any, what: str) -> ValueError:
 
 
 def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
-    """Reads and verifies a checkpoint; returns ``(pure_dict, header)`` ([T-11]).
+    """Reads and verifies a checkpoint; returns ``(pure_dict, header)`` ([T-12]).
 
     Checks, in order, raising ``ValueError`` that names the file and the problem:
     the file is a readable archive (truncated or garbled bytes fail here or at the
@@ -208,7 +208,7 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
 
 
 def load_checkpoint(path: str | os.PathLike, policy: FlowPolicy | None = None) -> tuple[FlowPolicy, dict]:
-    """Loads a checkpoint written by :func:`save_checkpoint`; returns ``(policy, metadata)`` ([T-11]).
+    """Loads a checkpoint written by :func:`save_checkpoint`; returns ``(policy, metadata)`` ([T-12]).
 
     Without ``policy`` a new :class:`FlowPolicy` is built from the stored
     constructor arguments; with one, its ``obs_dim``, ``action_dim`` and config

@@ -351,7 +351,7 @@ class TrainStep:
     """A compiled behaviour-cloning step for one policy architecture and config ([T-7]).
 
     Build with :func:`make_train_step`. ``step(state, batch, key) -> (state, metrics)``
-    validates its inputs ([T-12]) and runs the jitted update; ``metrics`` holds
+    validates its inputs ([T-10]) and runs the jitted update; ``metrics`` holds
     device scalars ``loss`` (batch loss before the update, [L-3]), ``grad_norm``
     (before clipping), ``learning_rate`` (used by this update) and ``delay_mean``.
     Steps built for equal architectures and equal configs share one compilation
@@ -421,7 +421,7 @@ class TrainStep:
         self._check_params("state.params", state.params)
 
     def check_batch(self, batch: Any) -> tuple[jax.Array, jax.Array]:
-        """Validated ``(obs [B, O], actions [B, H, A])`` as float32 ([T-12], [N-7])."""
+        """Validated ``(obs [B, O], actions [B, H, A])`` as float32 ([T-10], [N-7])."""
         obs, actions = _unpack_batch(batch)
         obs = _float_batch("obs", obs, (None, self.obs_dim), self.check_finite)
         actions = _float_batch("actions", actions, (None, self.horizon, self.action_dim), self.check_finite)
