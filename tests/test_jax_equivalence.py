@@ -557,3 +557,16 @@ def test_policy_fast_path_matches_straightforward():
     for d in (0, 3):
         slow, fast = both("train_soft", state, obs, noise, prior, d)
         np.testing.assert_allclose(fast, slow, **TRAJ)
+
+
+def test_exp_schedule_is_exactly_one_at_zero_in_float32():
+    """W-3, W-1: the exp schedule's denominator is expm1(1), so g(0) = 1 exactly and weights stay in [0, 1]."""
+    import jax.numpy as jnp
+
+    from softrtc.jax import weights as JW
+
+    assert float(JW.schedule_value("exp", jnp.zeros(1, jnp.float32))[0]) == 1.0
+    for H in range(1, 17):
+        for d in range(H):
+            w = JW.prefix_weights(H, d, H, "exp", "paper")
+            assert float(jnp.max(w)) <= 1.0

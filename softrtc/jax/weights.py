@@ -16,7 +16,6 @@ Instead of slicing (which needs static bounds) every function computes all
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +34,7 @@ OVERFLOWS = _ref.OVERFLOWS
 def schedule_value(schedule: str, x) -> jax.Array:
     """Window schedule g(x) for x in [0, 1], any shape ([W-3]).
 
-    zeros: 0; ones: 1; linear: 1 - x; exp: u expm1(u) / (e - 1), u = 1 - x.
+    zeros: 0; ones: 1; linear: 1 - x; exp: u expm1(u) / expm1(1), u = 1 - x.
     Concrete ``x`` outside [0, 1] is rejected.
     """
     v.check_choice("schedule", schedule, SCHEDULES)
@@ -47,7 +46,8 @@ def schedule_value(schedule: str, x) -> jax.Array:
     u = 1.0 - x
     if schedule == "linear":
         return u
-    return u * jnp.expm1(u) / (math.e - 1.0)
+    # expm1(1) rather than e - 1 so that g(0) is exactly 1 ([W-3]).
+    return u * jnp.expm1(u) / jnp.expm1(jnp.ones((), u.dtype))
 
 
 def window_positions(H: int, d, e, parametrization: str = "rtc") -> jax.Array:
