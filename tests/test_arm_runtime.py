@@ -45,7 +45,7 @@ def _check_aligned(rec, H, s):
 
 
 def test_runtime_realized_delay_alignment_and_prediction():
-    """R-1, R-2, R-3, R-4, R-9, X-1, X-3, X-4: switches, delays and priors in a clean run."""
+    """R-1, R-2, R-3, R-4, R-8, R-9, X-1, X-3, X-4: switches, delays, priors and latency in a clean run."""
     pol = RampPolicy()
     rec = run_realtime_episode(pol, 3, jax.random.key(0), RuntimeConfig(added_latency_s=0.02), max_steps=60)
     # Wall-clock timing on a shared machine: a rare late chunk is allowed (it is handled by R-5).

@@ -18,6 +18,7 @@ import dataclasses
 import json
 import math
 import os
+from functools import partial
 from pathlib import Path
 
 import flax.nnx as nnx
@@ -227,7 +228,9 @@ def train_flow_policy(dataset: dict, normalizer: Normalizer, method: str, steps:
     else:
         if not isinstance(init, FlowPolicy):
             raise ValueError(f"init must be a FlowPolicy or None, got {type(init).__name__}")
-        model = nnx.merge(*nnx.split(init))  # a copy: fine-tuning leaves the base intact
+        # A deep copy (split/merge alone would share the parameter variables): fine-tuning leaves the base intact.
+        gd, st = nnx.split(init)
+        model = nnx.merge(gd, jax.tree_util.tree_map(jnp.copy, st))
     schedule = optax.warmup_cosine_decay_schedule(0.0, learning_rate, min(200, steps // 10 + 1), steps,
                                                   learning_rate * 0.05)
     opt = nnx.Optimizer(model, optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=1e-4)),
@@ -333,6 +336,33 @@ def load_arm_checkpoint(path, sampler_method: str | None = None) -> "ArmPolicy":
 
 # --------------------------------------------------------------------------- inference
 
+# Module-level compiled generators: policies with the same architecture share compilations
+# (graphdef, H, s, T and the method are static; parameters, window parameters and d are traced).
+
+
+@partial(jax.jit, static_argnums=(0,))
+def _first_chunk(static, state, nm, obs, key):
+    # The first chunk is naive for every method ([X-2], [S-6]).
+    gd, H, s, T = static
+    m = nnx.merge(gd, state)
+    noise = jax.random.normal(key, (1, H, ACTION_DIM))
+    z = jsampler.naive_sample_conditioned(m, ((obs - nm[0]) / nm[1])[None], noise, T, unroll=False)
+    return z[0] * nm[3] + nm[2]
+
+
+@partial(jax.jit, static_argnums=(0, 1))
+def _later_chunk(static, method, state, window, nm, obs, prior, d, key):
+    gd, H, s, T = static
+    m = nnx.merge(gd, state)
+    noise = jax.random.normal(key, (1, H, ACTION_DIM))
+    y = ((prior - nm[2]) / nm[3])[None]
+    # Weights and time conditioning of delay d are computed inside the compiled call
+    # (a few small ops), so building a policy does no eager per-delay work.
+    z = jmethods.generate_chunk_conditioned(method, m, ((obs - nm[0]) / nm[1])[None], noise, y, s, d, T,
+                                            window, unroll=False)
+    return z[0] * nm[3] + nm[2]
+
+
 
 class ArmPolicy:
     """A flow policy with its normalizer and chunk generator ([A-19], [S-6]).
@@ -346,7 +376,8 @@ class ArmPolicy:
     """
 
     def __init__(self, model: FlowPolicy, normalizer: Normalizer, config: ArmPolicyConfig, method: str,
-                 trained_as: str | None = None, meta: dict | None = None, env_config: ArmConfig | None = None):
+                 trained_as: str | None = None, meta: dict | None = None, env_config: ArmConfig | None = None,
+                 window: SoftWindow | None = None):
         if not isinstance(model, FlowPolicy):
             raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
         if not isinstance(normalizer, Normalizer):
@@ -360,29 +391,11 @@ class ArmPolicy:
         self.H, self.s, self.T = config.horizon, config.execute_horizon, config.num_steps
         self.low, self.high = action_bounds(env_config)
         self._graphdef, self._state = nnx.split(model)
-        self._tables = jmethods.method_tables(self.method, model, self.H, self.s, self.T)
-        gd, method_, H, s, T = self._graphdef, self.method, self.H, self.s, self.T
-        f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
-        self._nm = tuple(f32(a) for a in (normalizer.obs_mean, normalizer.obs_std,
-                                          normalizer.act_mean, normalizer.act_std))
-
-        def first(state, tables, nm, obs, key):
-            # The first chunk is naive for every method ([X-2], [S-6]).
-            m = nnx.merge(gd, state)
-            noise = jax.random.normal(key, (1, H, ACTION_DIM))
-            z = jsampler.naive_sample_conditioned(m, ((obs - nm[0]) / nm[1])[None], noise, T)
-            return z[0] * nm[3] + nm[2]
-
-        def later(state, tables, nm, obs, prior, d, key):
-            m = nnx.merge(gd, state)
-            noise = jax.random.normal(key, (1, H, ACTION_DIM))
-            y = ((prior - nm[2]) / nm[3])[None]
-            z = jmethods.generate_chunk_conditioned(method_, m, ((obs - nm[0]) / nm[1])[None], noise, y, s, d, T,
-                                                    tables=tables)
-            return z[0] * nm[3] + nm[2]
-
-        self._first = jax.jit(first)
-        self._later = jax.jit(later)
+        # train_soft's window ([W-7]); default the paper's main setting.
+        self.window = SoftWindow() if window is None else window
+        self._static = (self._graphdef, self.H, self.s, self.T)
+        self._nm = tuple(jnp.asarray(a, jnp.float32) for a in (normalizer.obs_mean, normalizer.obs_std,
+                                                              normalizer.act_mean, normalizer.act_std))
 
     def _obs(self, obs) -> jnp.ndarray:
         o = np.asarray(obs, np.float64)
@@ -397,13 +410,13 @@ class ArmPolicy:
             raise ValueError("key must be a typed JAX PRNG key (jax.random.key(seed))")
         if prior is None:
             _check_int("d", d, 0, 0)
-            z = self._first(self._state, self._tables, self._nm, o, key)
+            z = _first_chunk(self._static, self._state, self._nm, o, key)
         else:
             d = _check_int("d", d, 0, self.config.max_delay)
             p = np.asarray(prior, np.float64)
             if p.shape != (self.H, ACTION_DIM) or not np.all(np.isfinite(p)):
                 raise ValueError(f"prior must be a finite array of shape [{self.H}, {ACTION_DIM}], got {list(p.shape)}")
-            z = self._later(self._state, self._tables, self._nm, o, jnp.asarray(p, jnp.float32),
+            z = _later_chunk(self._static, self.method, self._state, self.window, self._nm, o, jnp.asarray(p, jnp.float32),
                             jnp.int32(d), key)
         return np.clip(np.asarray(z, np.float64), self.low, self.high)
 
@@ -414,7 +427,8 @@ class ArmPolicy:
         self.generate(obs, c, min(1, self.config.max_delay), jax.random.key(1))
 
 
-def untrained_policy(seed: int = 0, method: str = "naive", config: ArmPolicyConfig = ArmPolicyConfig()) -> ArmPolicy:
+def untrained_policy(seed: int = 0, method: str = "naive", config: ArmPolicyConfig = ArmPolicyConfig(),
+                     window: SoftWindow | None = None) -> ArmPolicy:
     """A randomly initialised policy with identity normalization, for fast conformance tests.
 
     adaLN-zero makes the mixer blocks identity at initialisation, so the output
@@ -426,7 +440,7 @@ def untrained_policy(seed: int = 0, method: str = "naive", config: ArmPolicyConf
     model = FlowPolicy(obs_dim=OBS_DIM, action_dim=ACTION_DIM, config=config.policy_config(), rngs=nnx.Rngs(seed))
     norm = Normalizer(np.zeros(OBS_DIM), np.ones(OBS_DIM), np.array([0.0, -1.0, 0.0, 0.5]),
                       np.array([0.3, 0.3, 0.3, 0.3]))
-    return ArmPolicy(model, norm, config, method, trained_as="untrained")
+    return ArmPolicy(model, norm, config, method, trained_as="untrained", window=window)
 
 
 def default_checkpoint_dir() -> Path:

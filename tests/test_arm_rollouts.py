@@ -1,0 +1,214 @@
+"""Conformance rollouts on the arm with the simulated-delay executor (spec chapters X, S, W; spec/10-arm.md).
+
+An untrained small flow policy keeps these fast; the properties hold for any weights.
+"""
+
+import numpy as np
+import jax
+import pytest
+
+pytest.importorskip("pymunk")
+
+from softrtc.arm.executor import episode_metrics, run_simulated_episode  # noqa: E402
+from softrtc.arm.policies import ArmPolicyConfig, untrained_policy  # noqa: E402
+from softrtc.jax import executor as jexec  # noqa: E402
+from softrtc.jax.endpoints import offset  # noqa: E402
+from softrtc.jax.weights import SoftWindow  # noqa: E402
+from softrtc.reference import executor as rexec  # noqa: E402
+
+STEPS = 40  # 8 chunks of s = 5
+CFG = ArmPolicyConfig(channel_dim=16, channel_hidden_dim=32, token_hidden_dim=8, num_layers=2)
+_CACHE = {}
+
+
+def policy(method, window=None):
+    k = (method, None if window is None else "offset0")
+    if k not in _CACHE:
+        _CACHE[k] = untrained_policy(7, method, CFG, window=window)
+    return _CACHE[k]
+
+
+def rollout(method, delays, seed=11, key=0, window=None):
+    return run_simulated_episode(policy(method, window), seed, delays, jax.random.key(key), max_steps=STEPS)
+
+
+def test_zero_delay_same_actions_for_all_training_time_methods():
+    """S-7, E-6, W-9, C-3, A-22: with d = 0 naive, train_hard and train_soft execute identical actions."""
+    recs = {m: rollout(m, 0) for m in ("naive", "train_hard", "train_soft")}
+    base = recs["naive"].actions
+    assert base.shape == (STEPS, 4)
+    for m, r in recs.items():
+        np.testing.assert_array_equal(r.actions, base, err_msg=m)
+        np.testing.assert_array_equal(r.chunks, recs["naive"].chunks, err_msg=m)
+
+
+def test_offset_zero_window_equals_hard():
+    """E-3, W-8, A-22: train_soft with the offset rule L = 0 executes exactly what train_hard executes."""
+    hard = rollout("train_hard", 3)
+    soft0 = rollout("train_soft", 3, window=SoftWindow(rule=offset(0, 5)))
+    np.testing.assert_array_equal(soft0.actions, hard.actions)
+    np.testing.assert_array_equal(soft0.chunks, hard.chunks)
+    # And the default soft window does differ at d = 3 (its window is not empty, W-7).
+    assert not np.array_equal(rollout("train_soft", 3).chunks, hard.chunks)
+
+
+@pytest.mark.parametrize("method", ["train_hard", "train_soft"])
+def test_committed_prefix_comes_from_previous_chunk(method):
+    """X-2, X-3, X-4, X-5, A-23: at each switch the first d_c actions came from chunk c-1."""
+    delays = [0, 1, 3, 5, 2, 4, 0, 3]
+    rec = rollout(method, delays)
+    s = 5
+    assert list(rec.request_step) == [c * s for c in range(len(rec.chunks))]
+    assert list(rec.delays) == delays[: len(rec.chunks)]
+    for n in range(rec.steps):
+        c, i = divmod(n, s)
+        d = rec.delays[c] if c >= 1 else 0
+        if i < d:
+            assert (rec.chunk_index[n], rec.token_index[n]) == (c - 1, s + i)
+            np.testing.assert_array_equal(rec.actions[n], rec.chunks[c - 1][s + i])
+        else:
+            assert (rec.chunk_index[n], rec.token_index[n]) == (c, i)
+            np.testing.assert_array_equal(rec.actions[n], rec.chunks[c][i])
+    m = episode_metrics(rec)
+    assert np.isfinite(m["D1"]) and np.isfinite(m["boundary"])
+
+
+def test_jax_and_reference_executors_agree_on_policy_outputs():
+    """X-5, N-8, A-23: execute_chunks (JAX and NumPy reference) reproduce the executed actions."""
+    delays = [0, 2, 4, 1, 3, 5, 0, 2]
+    rec = rollout("train_soft", delays)
+    ref = rexec.execute_chunks(rec.chunks, rec.delays, 5)
+    jx = jexec.execute_chunks(rec.chunks, np.asarray(rec.delays, np.int32), 5)
+    np.testing.assert_array_equal(ref["actions"][: rec.steps], rec.actions)
+    np.testing.assert_array_equal(ref["chunk_index"][: rec.steps], rec.chunk_index)
+    np.testing.assert_array_equal(ref["token_index"][: rec.steps], rec.token_index)
+    np.testing.assert_allclose(np.asarray(jx["actions"])[: rec.steps], rec.actions, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(jx["chunk_index"]), ref["chunk_index"])
+    np.testing.assert_array_equal(np.asarray(jx["token_index"]), ref["token_index"])
+
+
+def test_same_seed_same_rollout_and_different_key_differs():
+    """N-9, A-6, A-22: same policy, env seed, delays and key give a bitwise identical rollout."""
+    a = rollout("train_soft", 3, seed=5, key=1)
+    b = rollout("train_soft", 3, seed=5, key=1)
+    np.testing.assert_array_equal(a.actions, b.actions)
+    np.testing.assert_array_equal(a.joint_pos, b.joint_pos)
+    c = rollout("train_soft", 3, seed=5, key=2)
+    assert not np.array_equal(a.actions, c.actions)
+
+
+def test_inference_hard_at_zero_delay_is_naive():
+    """G-6, G-1, S-6: inference-time hard RTC at d = 0 (W = 0) executes the naive actions."""
+    np.testing.assert_allclose(rollout("inference_hard", 0).actions, rollout("naive", 0).actions, atol=1e-6)
+
+
+def test_simulated_executor_validates_inputs():
+    """X-1, N-7, A-12: delays outside [0, min(s, H - s)], d_0 != 0, bad seeds and keys are rejected."""
+    with pytest.raises(ValueError, match="delays"):
+        rollout("train_hard", 6)
+    with pytest.raises(ValueError, match="delays"):
+        rollout("train_hard", -1)
+    with pytest.raises(ValueError, match=r"delays\[0\]"):
+        rollout("train_hard", [2, 2])
+    with pytest.raises(ValueError, match="delays"):
+        rollout("train_hard", 2.0)
+    with pytest.raises(ValueError, match="env_seed"):
+        run_simulated_episode(policy("naive"), -1, 0, jax.random.key(0))
+    with pytest.raises(ValueError, match="key"):
+        run_simulated_episode(policy("naive"), 0, 0, 0)
+    with pytest.raises(ValueError, match="max_steps"):
+        run_simulated_episode(policy("naive"), 0, 0, jax.random.key(0), max_steps=0)
+    with pytest.raises(ValueError, match="d"):
+        policy("train_hard").generate(np.zeros(34), np.zeros((10, 4)), 6, jax.random.key(0))
+    with pytest.raises(ValueError, match="obs"):
+        policy("train_hard").generate(np.zeros(33), None, 0, jax.random.key(0))
+
+
+def test_chunk_dataset_and_policy_output_head():
+    """A-17, A-19, A-8: chunks repeat the last label past an episode's end; chunks lie in the action box."""
+    from softrtc.arm.policies import action_bounds, chunk_dataset
+
+    data = {"obs": np.arange(5 * 34, dtype=np.float32).reshape(5, 34),
+            "action": np.arange(5 * 4, dtype=np.float32).reshape(5, 4),
+            "episode_start": np.array([0, 3]), "episode_length": np.array([3, 2])}
+    ds = chunk_dataset(data, 4)
+    assert ds["obs"].shape == (5, 34) and ds["chunks"].shape == (5, 4, 4)
+    np.testing.assert_array_equal(ds["chunks"][1, :, 0], [4, 8, 8, 8])
+    np.testing.assert_array_equal(ds["chunks"][3, :, 0], [12, 16, 16, 16])
+    with pytest.raises(ValueError, match="horizon"):
+        chunk_dataset(data, 0)
+    lo, hi = action_bounds()
+    rec = rollout("train_soft", 2)
+    assert np.all(rec.chunks >= lo) and np.all(rec.chunks <= hi)
+    assert CFG.max_delay == 5 and ArmPolicyConfig().horizon == 10 and ArmPolicyConfig().execute_horizon == 5
+
+
+def test_checkpoint_roundtrip_and_shipped_checkpoints(tmp_path):
+    """A-18, A-21: a saved policy reloads to the same chunks; the shipped set is small and complete."""
+    import json
+    from softrtc.arm.policies import default_checkpoint_dir, load_arm_checkpoint, save_arm_checkpoint
+
+    p = policy("train_hard")
+    path = save_arm_checkpoint(tmp_path / "p.npz", p.model, p.normalizer, CFG, "train_hard", {"note": 1})
+    q = load_arm_checkpoint(path)
+    assert q.method == "train_hard" and q.meta == {"note": 1}
+    obs = np.linspace(-1, 1, 34)
+    c0 = p.generate(obs, None, 0, jax.random.key(3))
+    np.testing.assert_array_equal(q.generate(obs, None, 0, jax.random.key(3)), c0)
+    np.testing.assert_array_equal(q.generate(obs, c0, 3, jax.random.key(4)), p.generate(obs, c0, 3, jax.random.key(4)))
+    with pytest.raises(ValueError, match="path"):
+        load_arm_checkpoint(tmp_path / "missing.npz")
+    folder = default_checkpoint_dir()
+    files = {f: folder / f for f in ("base.npz", "train_hard.npz", "train_soft.npz")}
+    assert sum(f.stat().st_size for f in files.values()) < 5 * 2**20
+    for name, f in files.items():
+        with np.load(f, allow_pickle=False) as z:
+            h = json.loads(str(z["header"]))
+            assert h["format"] == "softrtc-arm-policy-1" and h["config"]["horizon"] == 10
+            assert h["method"] == {"base.npz": "naive", "train_hard.npz": "train_hard",
+                                   "train_soft.npz": "train_soft"}[name]
+            assert z["obs_mean"].shape == (34,) and z["act_std"].shape == (4,)
+
+
+def test_training_objectives_run_and_change_weights():
+    """A-20, D-1, D-4, C-1, L-1: a few keyed steps of each objective; fine-tuning leaves the base intact."""
+    import flax.nnx as nnx
+    from softrtc.arm.policies import Normalizer, train_flow_policy
+
+    rng = np.random.default_rng(0)
+    ds = {"obs": rng.normal(size=(32, 34)).astype(np.float32),
+          "chunks": rng.normal(size=(32, CFG.horizon, 4)).astype(np.float32)}
+    norm = Normalizer.fit(ds["obs"], ds["chunks"].reshape(-1, 4))
+    base = train_flow_policy(ds, norm, "naive", 2, 0, config=CFG, batch_size=8)
+    before = jax.tree_util.tree_leaves(nnx.state(base))
+    soft = train_flow_policy(ds, norm, "train_soft", 2, 1, config=CFG, init=base, batch_size=8)
+    after = jax.tree_util.tree_leaves(nnx.state(base))
+    assert all(np.array_equal(a, b) for a, b in zip(before, after))
+    assert any(not np.array_equal(a, b) for a, b in zip(before, jax.tree_util.tree_leaves(nnx.state(soft))))
+    with pytest.raises(ValueError, match="method"):
+        train_flow_policy(ds, norm, "inference_soft", 2, 0, config=CFG)
+    with pytest.raises(ValueError, match="steps"):
+        train_flow_policy(ds, norm, "naive", 0, 0, config=CFG)
+
+
+def test_study_metrics_table_and_plot(tmp_path):
+    """A-24, A-25, A-26, M-1, M-3, M-6: per-trial metrics on joint targets, the table and the trace plot."""
+    from softrtc.arm.study import format_table, plot_traces, summarize
+    from softrtc.reference.metrics import boundary_jump, difference_norm
+
+    recs = [rollout("train_hard", 3, seed=s) for s in (1, 2)]
+    per = [episode_metrics(r) for r in recs]
+    for r, m in zip(recs, per):
+        assert m["D2"] == difference_norm(r.actions[:, :3], 2)
+        assert m["boundary"] == boundary_jump(r.actions[:, :3], r.chunk_index)
+        assert m["throughput"] == m["completed"] / (r.steps * r.dt / 60.0)
+    row = summarize(per)
+    assert row["trials"] == 2 and row["objects_total"] == 8
+    assert row["D1_se"] == pytest.approx(np.std([m["D1"] for m in per], ddof=1) / np.sqrt(2))
+    text = format_table({"train_hard": row})
+    for col in ("Succ.", "Compl.", "Obj.", "Thr.", "D1", "D2", "D3", "Bound.", "Lat.", "Train Hard RTC"):
+        assert col in text
+    png = plot_traces({"train_hard": recs[0]}, tmp_path / "t.png")
+    assert (tmp_path / "t.png").stat().st_size > 1000 and png.endswith(".png")
+    with pytest.raises(ValueError, match="per_trial"):
+        summarize([])
