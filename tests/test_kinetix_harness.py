@@ -21,7 +21,7 @@ import flax.nnx as nnx  # noqa: E402
 import jax  # noqa: E402
 
 from softrtc.jax import checkpoint as jckpt  # noqa: E402
-from softrtc.jax.policy import FlowPolicy, PolicyConfig, state_pure_dict  # noqa: E402
+from softrtc.jax.policy import FlowPolicy, PolicyConfig, load_pure_dict, state_pure_dict  # noqa: E402
 from softrtc.kinetix import data as kdata  # noqa: E402
 from softrtc.reference import executor as ref_executor  # noqa: E402
 from softrtc.reference import metrics as ref_metrics  # noqa: E402
@@ -46,6 +46,13 @@ def setup():
 
     task = kenv.make_env("grasp_easy", LEVELS_DIR)
     pol = FlowPolicy(obs_dim=task.obs_dim, action_dim=task.action_dim, config=SMALL, rngs=nnx.Rngs(0))
+    # adaLN-zero init ([P-6]) closes every gate, so a fresh policy acts on each token alone and
+    # Hard RTC could not change an executed action; random modulation kernels open the gates.
+    rng = np.random.default_rng(0)
+    pure = jax.tree_util.tree_map_with_path(
+        lambda path, a: np.asarray(a) + 0.3 * rng.standard_normal(np.shape(a)).astype(np.float32)
+        if "adaln" in jax.tree_util.keystr(path) else np.asarray(a), state_pure_dict(pol))
+    load_pure_dict(pol, pure)
     n = EPISODES * len(DELAYS)
     ro = H.make_rollout(task, pol, "rtc", n, episode_steps=STEPS)
     keys = jax.numpy.tile(H.episode_keys(0, "grasp_easy", EPISODES), len(DELAYS))
