@@ -365,6 +365,12 @@ class TrainStep:
     """
 
     def __init__(self, policy: FlowPolicy, config: TrainConfig, *, check_finite: bool = True):
+        if not isinstance(policy, FlowPolicy):
+            raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
+        if not isinstance(config, TrainConfig):
+            raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
+        if not isinstance(check_finite, bool):
+            raise ValueError(f"check_finite must be a bool, got {check_finite!r}")
         self.config = config
         self.check_finite = check_finite
         self.obs_dim = policy.obs_dim
@@ -496,12 +502,6 @@ def make_train_step(policy: FlowPolicy, config: TrainConfig, *, check_finite: bo
     skips the host-side NaN/inf scan of each batch (shape checks remain).
     The policy itself is not modified; :meth:`TrainStep.policy` returns a new one.
     """
-    if not isinstance(policy, FlowPolicy):
-        raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
-    if not isinstance(config, TrainConfig):
-        raise ValueError(f"config must be a TrainConfig, got {type(config).__name__}")
-    if not isinstance(check_finite, bool):
-        raise ValueError(f"check_finite must be a bool, got {check_finite!r}")
     return TrainStep(policy, config, check_finite=check_finite)
 
 
