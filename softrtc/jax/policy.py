@@ -323,23 +323,52 @@ class FlowPolicy(nnx.Module):
 
     # ------------------------------------------------------------------ network
 
-    def apply_conditioned(self, obs: Any, x: Any, cond: Mapping[str, Any]) -> jax.Array:
+    def apply_conditioned(self, obs: Any, x: Any, cond: Mapping[str, Any], *, obs_encoding: Any = None) -> jax.Array:
         """Velocity ``[B, H, A]`` from precomputed time conditioning ``cond`` [P-12].
 
         Every leaf of ``cond`` has shape ``[b, h, F]`` (or ``[h, F]``, read as
         ``b = 1``) with ``b`` in {1, B} and ``h`` in {1, H}; size-1 dims broadcast.
         ``apply_conditioned(obs, x, time_conditioning(t[:, :]))`` equals
         ``policy(obs, x, t)``.
+
+        ``obs_encoding`` (optional, ``[B, 1, C]``) is :meth:`encode_obs` of ``obs``;
+        with it the observation half of ``in_proj`` is not recomputed (spec/32-runtime-bench.md, [B-3]).
         """
         obs, x = self._check_obs_x(obs, x)
         self._check_cond(cond, obs.shape[0])
-        return self._forward(obs, x, cond)
+        if obs_encoding is None:
+            return self._forward(obs, x, cond)
+        enc = _as_float_array("obs_encoding", obs_encoding)
+        if tuple(enc.shape) != (obs.shape[0], 1, self.channel_dim):
+            raise ValueError(f"obs_encoding must have shape [B, 1, C] = [{obs.shape[0]}, 1, {self.channel_dim}] "
+                             f"(encode_obs(obs)), got {tuple(enc.shape)}")
+        _check_finite("obs_encoding", enc)
+        return self._forward(obs, x, cond, enc)
 
-    def _forward(self, obs: jax.Array, x: jax.Array, cond: Mapping[str, Any]) -> jax.Array:
+    def encode_obs(self, obs: Any) -> jax.Array:
+        """Observation part of the input projection, ``obs @ W_obs + b`` of shape ``[B, 1, C]`` ([B-3]).
+
+        ``in_proj`` acts on ``[x_j, obs]``, so its output splits into
+        ``x_j @ W_x + (obs @ W_obs + b)``; the second term is the same for every
+        token and every solver step of one sampler call and can be computed once.
+        """
+        obs = _as_float_array("obs", obs)
+        if obs.ndim != 2 or obs.shape[1] != self.obs_dim or obs.shape[0] < 1:
+            raise ValueError(f"obs must have shape [B, {self.obs_dim}] with B >= 1, got {tuple(obs.shape)}")
+        _check_finite("obs", obs)
+        kernel = self.in_proj.kernel[...]
+        return (obs @ kernel[self.action_dim:] + self.in_proj.bias[...])[:, None, :]
+
+    def _forward(self, obs: jax.Array, x: jax.Array, cond: Mapping[str, Any],
+                 obs_encoding: jax.Array | None = None) -> jax.Array:
         b = obs.shape[0]
-        # Action first, then observation: the in_proj kernel rows are laid out this way [P-2].
-        obs_tok = jnp.broadcast_to(obs[:, None, :], (b, self.action_chunk_size, self.obs_dim))
-        hdn = self.in_proj(jnp.concatenate([x, obs_tok], axis=-1))
+        if obs_encoding is not None:
+            # [B-3] split input projection: only the action rows of the kernel act per token and step.
+            hdn = x @ self.in_proj.kernel[...][: self.action_dim] + obs_encoding
+        else:
+            # Action first, then observation: the in_proj kernel rows are laid out this way [P-2].
+            obs_tok = jnp.broadcast_to(obs[:, None, :], (b, self.action_chunk_size, self.obs_dim))
+            hdn = self.in_proj(jnp.concatenate([x, obs_tok], axis=-1))
         for block, m in zip(self.mlp_stack, cond[_COND_LAYERS]):
             hdn = block(hdn, m["adaln_1"], m["adaln_2"])
         scale, shift = jnp.split(cond[_COND_FINAL], 2, axis=-1)

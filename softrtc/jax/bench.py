@@ -1,0 +1,536 @@
+"""Runtime benchmark of chunk generation and training steps (spec chapter B, ``spec/32-runtime-bench.md``).
+
+``softrtc bench runtime`` measures, in the spirit of the paper's efficiency
+benchmark (Table main, "Runtime / Naive"), the steady-state latency of one
+chunk-generation call per method after JIT warm-up, at several batch sizes,
+as a median over many calls and as a ratio to the naive sampler measured in
+the same run ([B-1], [B-6]); and the time of one training step of Soft RTC
+relative to Hard RTC and to plain flow matching ([B-8]).
+
+>>> cfg = BenchConfig(calls=2, warmup=1, batch_sizes=(1,), train_calls=1, train_batch=2, arch="tiny")
+>>> res = run_benchmark(cfg)                                   # doctest: +SKIP
+>>> print(format_table(res))                                   # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import statistics
+import time
+from typing import Any, Callable
+
+import flax.nnx as nnx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from softrtc.reference._validate import check_choice, check_int
+
+from .endpoints import delay_scaled
+from .methods import generate_chunk, generate_chunk_conditioned, method_tables
+from .policy import FlowPolicy, PolicyConfig
+from .training import TrainConfig, make_train_step
+from .weights import SoftWindow
+
+__all__ = [
+    "ARCHS",
+    "CHUNK_ROWS",
+    "BenchConfig",
+    "build_rows",
+    "run_benchmark",
+    "format_table",
+    "write_json",
+]
+
+# [B-2] Benchmark architecture (spec chapter P defaults) and a tiny one for smoke runs and tests.
+ARCHS = {
+    "benchmark": dict(obs_dim=679, action_dim=6, config=PolicyConfig()),
+    "tiny": dict(obs_dim=7, action_dim=3,
+                 config=PolicyConfig(channel_dim=16, channel_hidden_dim=24, token_hidden_dim=6, num_layers=1,
+                                     action_chunk_size=8)),
+}
+
+# [B-1] Chunk-generation rows: name -> (method of [S-6], soft window or None, label).
+CHUNK_ROWS = {
+    "naive": ("naive", None, "naive (base policy)"),
+    "inference_hard": ("inference_hard", None, "inference hard RTC"),
+    "inference_soft": ("inference_soft", None, "inference soft RTC"),
+    "train_hard": ("train_hard", None, "train hard RTC"),
+    "train_soft_lam1": ("train_soft", (1.0, 5), "train soft RTC (lam=1)"),
+    "train_soft_lam2": ("train_soft", (2.0, 5), "train soft RTC (lam=2)"),
+}
+# [B-4] Straightforward reference rows measured next to the fast path.
+REFERENCE_ROWS = ("naive", "train_soft_lam2")
+TRAIN_METHODS = ("none", "hard", "soft")
+
+# [B-5] Fast and straightforward chunks agree within this float32 tolerance: |a - b| <= ATOL + RTOL |b|.
+ATOL = RTOL = 1e-4
+
+# [B-9] Targets (limits on ratios of medians).
+TRAIN_SAMPLER_LIMIT = 1.05
+NAIVE_VS_STRAIGHTFORWARD_LIMIT = 0.9
+SOFT_STEP_LIMIT = 1.03
+GUIDED_LIMIT_B1 = 1.7
+GUIDED_LIMIT = 2.0
+
+
+# --------------------------------------------------------------------------- config
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchConfig:
+    """Everything the benchmark varies ([B-2], [B-6], [B-8]); every field is validated.
+
+    ``delay`` is ``None`` to rotate d over 0 .. min(s, H - s) across calls
+    (default), or one fixed delay. ``path`` selects the implementation of the
+    six method rows ("fast" or "straightforward", [B-3], [B-4]).
+    """
+
+    calls: int = 200
+    warmup: int = 5
+    batch_sizes: tuple = (1, 32)
+    delay: int | None = None
+    seed: int = 0
+    num_steps: int = 5
+    execute_horizon: int = 4
+    path: str = "fast"
+    train_batch: int = 32
+    train_calls: int = 50
+    arch: str = "benchmark"
+
+    def __post_init__(self) -> None:
+        check_int("calls", self.calls, 1, 10**7)
+        check_int("warmup", self.warmup, 1, 10**6)
+        if not isinstance(self.batch_sizes, tuple) or not self.batch_sizes:
+            raise ValueError(f"batch_sizes must be a non-empty tuple of integers >= 1, got {self.batch_sizes!r}")
+        for b in self.batch_sizes:
+            check_int("batch_sizes entry", b, 1, 1 << 16)
+        if len(set(self.batch_sizes)) != len(self.batch_sizes):
+            raise ValueError(f"batch_sizes must not repeat a size, got {self.batch_sizes!r}")
+        check_choice("arch", self.arch, tuple(ARCHS))
+        H = ARCHS[self.arch]["config"].action_chunk_size
+        check_int("execute_horizon", self.execute_horizon, 1, H)
+        if self.delay is not None:
+            check_int("delay", self.delay, 0, self.max_delay)
+        check_int("seed", self.seed, 0, 2**31 - 1)
+        check_int("num_steps", self.num_steps, 1, 1000)
+        check_choice("path", self.path, ("fast", "straightforward"))
+        check_int("train_batch", self.train_batch, 1, 1 << 16)
+        check_int("train_calls", self.train_calls, 0, 10**7)
+
+    @property
+    def horizon(self) -> int:
+        return ARCHS[self.arch]["config"].action_chunk_size
+
+    @property
+    def max_delay(self) -> int:
+        """Largest executable delay min(s, H - s) ([X-1])."""
+        return min(self.execute_horizon, self.horizon - self.execute_horizon)
+
+    @property
+    def delays(self) -> tuple:
+        """Delays used call by call: rotating 0 .. max_delay, or the fixed one ([B-2])."""
+        return tuple(range(self.max_delay + 1)) if self.delay is None else (self.delay,)
+
+
+# --------------------------------------------------------------------------- policy and inputs
+
+
+def make_policy(config: BenchConfig) -> FlowPolicy:
+    """The benchmark policy ([B-2]): seed-initialised, adaLN kernels redrawn so that time matters.
+
+    adaLN-zero initialisation ([P-6]) makes a fresh network independent of
+    time, which would make the path-agreement check of [B-5] vacuous.
+    """
+    if not isinstance(config, BenchConfig):
+        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
+    arch = ARCHS[config.arch]
+    policy = FlowPolicy(obs_dim=arch["obs_dim"], action_dim=arch["action_dim"], config=arch["config"],
+                        rngs=nnx.Rngs(config.seed))
+    rng = np.random.default_rng(config.seed)
+    for block in policy.mlp_stack:
+        for lin in (block.adaln_1, block.adaln_2):
+            lin.kernel[...] = jnp.asarray(0.02 * rng.standard_normal(lin.kernel.shape), jnp.float32)
+    policy.final_adaln.kernel[...] = jnp.asarray(0.02 * rng.standard_normal(policy.final_adaln.kernel.shape),
+                                                 jnp.float32)
+    return policy
+
+
+def _inputs(config: BenchConfig, policy: FlowPolicy, batch: int, count: int) -> list[tuple]:
+    """``count`` input sets (obs, noise, prior) on the device, drawn once so no call times a draw."""
+    rng = np.random.default_rng([config.seed, batch])
+    H, A, O = policy.action_chunk_size, policy.action_dim, policy.obs_dim
+    out = []
+    for _ in range(count):
+        out.append(tuple(jax.device_put(np.asarray(a, np.float32)) for a in (
+            rng.standard_normal((batch, O)), rng.standard_normal((batch, H, A)), rng.standard_normal((batch, H, A)))))
+    return out
+
+
+# --------------------------------------------------------------------------- chunk functions
+
+
+class _Encoded:
+    """The policy seen through one observation encoding ([B-3]).
+
+    Exposes the ``time_conditioning`` / ``apply_conditioned`` interface that
+    the conditioned samplers use, with ``in_proj``'s observation half computed
+    once per sampler call instead of once per Euler step.
+    """
+
+    def __init__(self, policy: FlowPolicy, obs_encoding: jax.Array):
+        self.policy = policy
+        self.obs_encoding = obs_encoding
+
+    def time_conditioning(self, t):
+        return self.policy.time_conditioning(t)
+
+    def apply_conditioned(self, obs, x, cond):
+        return self.policy.apply_conditioned(obs, x, cond, obs_encoding=self.obs_encoding)
+
+
+def _scalar_time(policy: FlowPolicy) -> Callable:
+    """``velocity_fn`` that evaluates the policy at one time per sample ([S-2], [G-2], [P-9]).
+
+    Naive and guided samplers give every token the same time t_k; passing
+    ``t[:, 0]`` (shape [B]) makes the policy compute its time conditioning once
+    per sample, the public release's scalar-time behaviour.
+    """
+    return lambda obs, x, t: policy(obs, x, t[:, 0])
+
+
+def _window(spec):
+    return None if spec is None else SoftWindow(rule=delay_scaled(spec[0], spec[1]))
+
+
+@dataclasses.dataclass
+class _Row:
+    name: str
+    method: str
+    path: str
+    label: str
+    fn: Callable  # jitted (state, tables, obs, noise, prior, d) -> chunk
+    tables: Any
+    table_seconds: float
+
+
+def _params(policy: FlowPolicy):
+    """(graphdef, treedef, leaves): the state is passed to jitted functions as a flat tuple of arrays.
+
+    A tuple of arrays is flattened by jit's C++ dispatch; an ``nnx.State`` goes
+    through a Python flatten on every call, a fixed cost that would blur the
+    ratios at batch 1.
+    """
+    graphdef, state = nnx.split(policy)
+    leaves, treedef = jax.tree.flatten(state)
+    return graphdef, treedef, tuple(leaves)
+
+
+def _fast_fn(graphdef, treedef, method, window, s, T):
+    def chunk(leaves, tables, obs, noise, prior, d):
+        policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
+        model = _Encoded(policy, policy.encode_obs(obs))
+        return generate_chunk_conditioned(method, model, obs, noise, prior, s, d, T, window, tables=tables)
+    return jax.jit(chunk)
+
+
+def _straightforward_fn(graphdef, treedef, method, window, s, T):
+    def chunk(leaves, tables, obs, noise, prior, d):
+        policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
+        vel = policy if method.startswith("train_") else _scalar_time(policy)
+        return generate_chunk(method, vel, obs, noise, prior, s, d, T, window)
+    return jax.jit(chunk)
+
+
+def build_rows(config: BenchConfig, policy: FlowPolicy) -> list[_Row]:
+    """The measured rows ([B-1], [B-3], [B-4], [B-7]): one jitted function per row, delay traced.
+
+    With ``path="fast"`` the six method rows use the fast path and the
+    straightforward naive and train-soft (lam=2) samplers are rows of their
+    own; with ``path="straightforward"`` the six method rows are straightforward.
+    Fast-path tables are built here, once per parameter set, and timed apart.
+    """
+    if not isinstance(config, BenchConfig):
+        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
+    if not isinstance(policy, FlowPolicy):
+        raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
+    graphdef, treedef, _ = _params(policy)
+    H, s, T = policy.action_chunk_size, config.execute_horizon, config.num_steps
+    specs = [(name, config.path) for name in CHUNK_ROWS]
+    if config.path == "fast":
+        specs += [(name, "straightforward") for name in REFERENCE_ROWS]
+    rows = []
+    for name, path in specs:
+        method, wspec, label = CHUNK_ROWS[name]
+        window = _window(wspec)
+        if path == "fast":
+            t0 = time.perf_counter()
+            tables = jax.block_until_ready(method_tables(method, policy, H, s, T, window))
+            secs = time.perf_counter() - t0
+            fn = _fast_fn(graphdef, treedef, method, window, s, T)
+        else:
+            tables, secs = None, 0.0
+            fn = _straightforward_fn(graphdef, treedef, method, window, s, T)
+        rows.append(_Row(name, method, path, label, fn, tables, secs))
+    return rows
+
+
+def _row_key(row: _Row, config: BenchConfig) -> str:
+    return row.name if row.path == config.path else f"{row.name}/{row.path}"
+
+
+# --------------------------------------------------------------------------- measurement
+
+
+def _agreement(rows, reference: dict, state, inputs, delays) -> dict:
+    """Max |fast - straightforward| per fast row over all delays, and whether it is within tolerance ([B-5])."""
+    out = {}
+    obs, noise, prior = inputs
+    for row in rows:
+        if row.path != "fast":
+            continue
+        worst, ok = 0.0, True
+        for d in delays:
+            a = np.asarray(row.fn(state, row.tables, obs, noise, prior, d))
+            b = np.asarray(reference[row.name](state, None, obs, noise, prior, d))
+            worst = max(worst, float(np.max(np.abs(a - b))))
+            ok = ok and bool(np.all(np.abs(a - b) <= ATOL + RTOL * np.abs(b)))
+        out[row.name] = {"max_abs_diff": worst, "ok": ok}
+    return out
+
+
+def check_agreement(config: BenchConfig, policy: FlowPolicy, batch: int, names=None) -> dict:
+    """Fast against straightforward chunks of the rows ``names`` (default all) at one batch size ([B-5]).
+
+    Returns ``{name: {"max_abs_diff": float, "ok": bool}}`` over every delay of ``config``.
+    """
+    if not isinstance(config, BenchConfig):
+        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
+    if not isinstance(policy, FlowPolicy):
+        raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
+    check_int("batch", batch, 1, 1 << 16)
+    names = tuple(CHUNK_ROWS) if names is None else tuple(names)
+    for n in names:
+        check_choice("names entry", n, tuple(CHUNK_ROWS))
+    fast = dataclasses.replace(config, path="fast")
+    rows = [r for r in build_rows(fast, policy) if r.path == "fast" and r.name in names]
+    graphdef, treedef, state = _params(policy)
+    reference = {n: _straightforward_fn(graphdef, treedef, CHUNK_ROWS[n][0], _window(CHUNK_ROWS[n][1]),
+                                        config.execute_horizon, config.num_steps) for n in names}
+    delays = [jnp.asarray(d, jnp.int32) for d in config.delays]
+    return _agreement(rows, reference, state, _inputs(config, policy, batch, 1)[0], delays)
+
+
+def _time_round_robin(fns: dict[str, Callable[[int], Any]], calls: int, warmup: int) -> dict[str, list]:
+    """Seconds per call of every entry, interleaved round-robin ([B-6]).
+
+    Each round calls every function once, starting at a rotating position so
+    that no entry always runs first (after an idle gap) or last; the first
+    ``warmup`` rounds are discarded.
+    """
+    names = list(fns)
+    times = {n: [] for n in names}
+    for i in range(warmup + calls):
+        k = i % len(names)
+        for n in names[k:] + names[:k]:
+            t0 = time.perf_counter()
+            jax.block_until_ready(fns[n](i))
+            dt = time.perf_counter() - t0
+            if i >= warmup:
+                times[n].append(dt)
+    return times
+
+
+def _stats(ts: list, base: list | None) -> dict:
+    med = statistics.median(ts)
+    out = {"median_ms": 1e3 * med, "p10_ms": 1e3 * float(np.percentile(ts, 10)),
+           "p90_ms": 1e3 * float(np.percentile(ts, 90)), "calls": len(ts)}
+    if base is not None:
+        out["ratio"] = med / statistics.median(base)
+        # Ratio of the two rows' times in the same round, median over rounds: robust to slow drifts.
+        out["paired_ratio"] = float(np.median(np.asarray(ts) / np.asarray(base)))
+    return out
+
+
+def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[str], None] | None = None) -> dict:
+    """Run the whole benchmark ([B-1]..[B-9]); returns the JSON-able result of [B-10]."""
+    if not isinstance(config, BenchConfig):
+        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
+    if progress is not None and not callable(progress):
+        raise ValueError("progress must be callable with one string argument, or None")
+    say = progress or (lambda msg: None)
+    t_start = time.perf_counter()
+    policy = make_policy(config)
+    graphdef, treedef, state = _params(policy)
+    rows = build_rows(config, policy)
+    # Straightforward function of every method, for the agreement check (shared with its row if measured).
+    reference = {}
+    for name, (method, wspec, _) in CHUNK_ROWS.items():
+        own = [r.fn for r in rows if r.name == name and r.path == "straightforward"]
+        reference[name] = own[0] if own else _straightforward_fn(graphdef, treedef, method, _window(wspec),
+                                                                 config.execute_horizon, config.num_steps)
+    delays = [jnp.asarray(d, jnp.int32) for d in config.delays]
+    naive_key = "naive"
+
+    result: dict = {
+        "config": dataclasses.asdict(config),
+        "architecture": {"obs_dim": policy.obs_dim, "action_dim": policy.action_dim,
+                         **dataclasses.asdict(policy.config), "parameters": int(sum(
+                             np.size(a) for a in jax.tree.leaves(nnx.state(policy, nnx.Param))))},
+        "environment": {"jax": jax.__version__, "backend": jax.default_backend(),
+                        "device": str(jax.devices()[0].device_kind), "cpu_count": os.cpu_count(),
+                        "machine": platform.machine(), "python": platform.python_version()},
+        "tolerance": {"atol": ATOL, "rtol": RTOL},
+        "table_build_ms": {r.name: 1e3 * r.table_seconds for r in rows if r.path == "fast"},
+        "chunk": {}, "agreement": {}, "compilations": {}, "train_step": None, "targets": []}
+    keys = [_row_key(r, config) for r in rows]
+    result["rows"] = [{"key": k, "name": r.name, "method": r.method, "path": r.path, "label": r.label}
+                      for k, r in zip(keys, rows)]
+
+    for B in config.batch_sizes:
+        sets = _inputs(config, policy, B, 4)
+        say(f"batch {B}: compiling and checking agreement")
+        result["agreement"][str(B)] = _agreement(rows, reference, state, sets[0], delays)
+
+        def call(row):
+            return lambda i: row.fn(state, row.tables, *sets[i % len(sets)], delays[i % len(delays)])
+
+        say(f"batch {B}: timing {len(rows)} rows x {config.calls} calls")
+        times = _time_round_robin({k: call(r) for k, r in zip(keys, rows)}, config.calls, config.warmup)
+        result["chunk"][str(B)] = {k: _stats(times[k], times[naive_key]) for k in keys}
+        result["compilations"][str(B)] = {k: r.fn._cache_size() for k, r in zip(keys, rows)}
+
+    if config.train_calls:
+        say(f"training steps: {len(TRAIN_METHODS)} methods x {config.train_calls} calls at batch "
+            f"{config.train_batch}")
+        result["train_step"] = _train_steps(config, policy)
+    result["targets"] = _targets(config, result)
+    result["seconds"] = time.perf_counter() - t_start
+    return result
+
+
+def _train_steps(config: BenchConfig, policy: FlowPolicy) -> dict:
+    """Training-step time of none / hard / soft, interleaved ([B-8])."""
+    rng = np.random.default_rng([config.seed, 1 << 20])
+    B, H, A, O = config.train_batch, policy.action_chunk_size, policy.action_dim, policy.obs_dim
+    obs = jax.device_put(rng.standard_normal((B, O)).astype(np.float32))
+    actions = jax.device_put(rng.standard_normal((B, H, A)).astype(np.float32))
+    d_max = min(4, H)
+    steps, states = {}, {}
+    for m in TRAIN_METHODS:
+        cfg = TrainConfig(method=m, batch_size=B, execute_horizon=config.execute_horizon, d_max=d_max)
+        steps[m] = make_train_step(policy, cfg)
+        states[m] = steps[m].init_state()
+    keys = jax.random.split(jax.random.key(config.seed), 8)
+
+    def call(m):
+        def f(i):
+            # The state is fed back so that every call is a real update of the current parameters.
+            states[m], metrics = steps[m].jitted(states[m], obs, actions, keys[i % len(keys)])
+            return states[m], metrics
+        return f
+
+    times = _time_round_robin({m: call(m) for m in TRAIN_METHODS}, config.train_calls, config.warmup)
+    out = {"batch": B, "d_max": d_max}
+    for m in TRAIN_METHODS:
+        out[m] = _stats(times[m], None)
+    out["soft_over_hard"] = out["soft"]["median_ms"] / out["hard"]["median_ms"]
+    out["soft_over_none"] = out["soft"]["median_ms"] / out["none"]["median_ms"]
+    out["hard_over_none"] = out["hard"]["median_ms"] / out["none"]["median_ms"]
+    out["soft_over_hard_paired"] = float(np.median(np.asarray(times["soft"]) / np.asarray(times["hard"])))
+    return out
+
+
+def _targets(config: BenchConfig, res: dict) -> list[dict]:
+    """PASS/FAIL of every target of [B-9] (timing targets apply to the fast path only)."""
+    out = []
+
+    def add(tid, what, value, limit, passed=None):
+        out.append({"id": tid, "target": what, "value": value, "limit": limit,
+                    "pass": bool(value <= limit) if passed is None else passed})
+
+    agree = [a for per_b in res["agreement"].values() for a in per_b.values()]
+    if agree:
+        worst = max(a["max_abs_diff"] for a in agree)
+        add("B-5", "fast and straightforward chunks agree", worst, None, all(a["ok"] for a in agree))
+    if config.path != "fast":
+        return out
+    for B in config.batch_sizes:
+        ch = res["chunk"][str(B)]
+        train = max(ch[k]["ratio"] for k in ("train_hard", "train_soft_lam1", "train_soft_lam2"))
+        add("B-9", f"train-time samplers / naive, batch {B}", train, TRAIN_SAMPLER_LIMIT)
+        add("B-9", f"naive / straightforward naive, batch {B}",
+            ch["naive"]["median_ms"] / ch["naive/straightforward"]["median_ms"], NAIVE_VS_STRAIGHTFORWARD_LIMIT)
+        guided = max(ch[k]["ratio"] for k in ("inference_hard", "inference_soft"))
+        add("B-9", f"guided samplers / naive, batch {B}", guided, GUIDED_LIMIT_B1 if B == 1 else GUIDED_LIMIT)
+    if res["train_step"] is not None:
+        add("B-9", "soft / hard training step", res["train_step"]["soft_over_hard"], SOFT_STEP_LIMIT)
+    return out
+
+
+# --------------------------------------------------------------------------- output
+
+
+def format_table(res: dict) -> str:
+    """The printed table of [B-10]: rows x batch sizes (median ms, ratio to naive), agreement, targets."""
+    if not isinstance(res, dict) or "chunk" not in res or "rows" not in res:
+        raise ValueError("res must be a result of run_benchmark")
+    cfg, arch = res["config"], res["architecture"]
+    bs = list(res["chunk"])
+    d = "rotating " + "..".join(map(str, (0, max(0, len(_delays_of(cfg)) - 1)))) \
+        if cfg["delay"] is None else str(cfg["delay"])
+    lines = [f"softrtc bench runtime: obs {arch['obs_dim']}, action {arch['action_dim']}, "
+             f"H {arch['action_chunk_size']}, s {cfg['execute_horizon']}, T {cfg['num_steps']}, d {d}; "
+             f"median of {cfg['calls']} interleaved calls after {cfg['warmup']} warm-up rounds; "
+             f"{res['environment']['backend']} ({res['environment']['cpu_count']} cores), "
+             f"jax {res['environment']['jax']}"]
+    head = f"{'method':<26s} {'path':<15s}" + "".join(f" {'b=' + b + ' ms':>10s} {'/naive':>7s}" for b in bs) \
+        + f" {'max|fast-sf|':>12s}"
+    lines += [head, "-" * len(head)]
+    for r in res["rows"]:
+        k = r["key"]
+        cells = "".join(f" {res['chunk'][b][k]['median_ms']:>10.3f} {res['chunk'][b][k]['ratio']:>6.2f}x"
+                        for b in bs)
+        diffs = [res["agreement"][b][r["name"]]["max_abs_diff"] for b in bs
+                 if r["path"] == "fast" and r["name"] in res["agreement"][b]]
+        lines.append(f"{r['label']:<26s} {r['path']:<15s}{cells} {(f'{max(diffs):.1e}' if diffs else '-'):>12s}")
+    ts = res.get("train_step")
+    if ts:
+        lines += ["", f"training step (batch {ts['batch']}, delays 0..{ts['d_max']}, "
+                      f"median of {ts['none']['calls']} interleaved calls)",
+                  f"{'method':<26s} {'ms':>10s} {'/hard':>7s} {'/none':>7s}"]
+        for m in TRAIN_METHODS:
+            lines.append(f"{m:<26s} {ts[m]['median_ms']:>10.2f} "
+                         f"{ts[m]['median_ms'] / ts['hard']['median_ms']:>6.2f}x "
+                         f"{ts[m]['median_ms'] / ts['none']['median_ms']:>6.2f}x")
+    if res["targets"]:
+        lines += ["", "targets"]
+        for t in res["targets"]:
+            val = f"{t['value']:.1e} (tol {res['tolerance']['atol']:.0e})" if t["limit"] is None \
+                else f"{t['value']:.3f} <= {t['limit']:.2f}"
+            lines.append(f"  {'PASS' if t['pass'] else 'FAIL'}  [{t['id']}] {t['target']:<44s} {val}")
+    lines.append(f"total {res['seconds']:.0f} s")
+    return "\n".join(lines)
+
+
+def _delays_of(cfg: dict) -> list:
+    H = ARCHS[cfg["arch"]]["config"].action_chunk_size
+    s = cfg["execute_horizon"]
+    return list(range(min(s, H - s) + 1))
+
+
+def write_json(res: dict, path: str | os.PathLike) -> None:
+    """Write the result of :func:`run_benchmark` as JSON ([B-10]); creates the parent folder."""
+    if not isinstance(res, dict) or "chunk" not in res:
+        raise ValueError("res must be a result of run_benchmark")
+    if not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise ValueError(f"path must be a file path, got {path!r}")
+    parent = os.path.dirname(os.fspath(path))
+    if parent:
+        os.makedirs(parent, exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(res, f, indent=1, sort_keys=True)
+        f.write("\n")

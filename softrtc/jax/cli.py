@@ -1,0 +1,127 @@
+"""`softrtc bench runtime` and the JAX step of `softrtc demo`; registered by softrtc/cli.py.
+
+``add_subparsers(subparsers)`` adds ``bench`` with the subcommand ``runtime``
+(spec/32-runtime-bench.md, chapter B). ``demo()`` is a quick check of the JAX
+twin: the conformance vectors of the samplers and guidance against the JAX
+adapter, and fast against straightforward chunks of a small flow policy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+
+def _batch_sizes(text: str) -> tuple:
+    try:
+        sizes = tuple(int(p) for p in text.split(",") if p.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--batch-sizes must be comma-separated integers >= 1, got {text!r}")
+    if not sizes or any(b < 1 for b in sizes) or len(set(sizes)) != len(sizes):
+        raise argparse.ArgumentTypeError(f"--batch-sizes must be distinct comma-separated integers >= 1, "
+                                         f"got {text!r}")
+    return sizes
+
+
+def _delay(text: str):
+    if text == "rotate":
+        return None
+    try:
+        d = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--delay must be 'rotate' or an integer >= 0, got {text!r}")
+    if d < 0:
+        raise argparse.ArgumentTypeError(f"--delay must be 'rotate' or an integer >= 0, got {text!r}")
+    return d
+
+
+def add_subparsers(subparsers) -> None:
+    """Register `bench runtime` ([B-1], [B-10])."""
+    bench = subparsers.add_parser("bench", help="benchmarks of the JAX implementation")
+    sub = bench.add_subparsers(dest="bench_command", metavar="SUBCOMMAND")
+    bench.set_defaults(func=lambda args: (bench.print_help(), 2)[1])
+    rt = sub.add_parser(
+        "runtime", help="chunk-generation latency per method (ratio to naive) and training-step time "
+                        "(spec/32-runtime-bench.md)")
+    rt.add_argument("--calls", type=int, default=200, help="timed calls per row and batch size (default 200)")
+    rt.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation (default 5)")
+    rt.add_argument("--batch-sizes", type=_batch_sizes, default=(1, 32), help="comma-separated (default 1,32)")
+    rt.add_argument("--delay", type=_delay, default=None,
+                    help="'rotate' (default: d = 0 .. min(s, H - s) in turn across calls) or a fixed delay")
+    rt.add_argument("--seed", type=int, default=0, help="seed of the policy parameters and inputs (default 0)")
+    rt.add_argument("--steps", type=int, default=5, help="Euler steps T (default 5)")
+    rt.add_argument("--execute-horizon", type=int, default=4, help="execute horizon s (default 4)")
+    rt.add_argument("--path", choices=("fast", "straightforward"), default="fast",
+                    help="implementation of the method rows (default fast; the straightforward naive and "
+                         "train-soft samplers are measured as rows of their own either way)")
+    rt.add_argument("--train-batch", type=int, default=32, help="batch size of the training steps (default 32)")
+    rt.add_argument("--train-calls", type=int, default=50,
+                    help="timed training steps per method (default 50; 0 skips them)")
+    rt.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark",
+                    help="policy size: the benchmark's (obs 679, action 6, H 8; default) or a tiny smoke-test one")
+    rt.add_argument("--out", default="runs/bench_runtime.json", help="JSON output (default runs/bench_runtime.json)")
+    rt.add_argument("--strict", action="store_true", help="exit with status 1 when a timing target fails")
+    rt.set_defaults(func=run_runtime)
+
+
+def run_runtime(args) -> int:
+    """Exit status: 0 done (timing targets only count with --strict), 1 paths disagree or strict failure,
+    2 invalid options ([B-10])."""
+    from . import bench
+
+    try:
+        config = bench.BenchConfig(
+            calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,
+            seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, path=args.path,
+            train_batch=args.train_batch, train_calls=args.train_calls, arch=args.arch)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    res = bench.run_benchmark(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
+    print(bench.format_table(res))
+    if args.out:
+        try:
+            bench.write_json(res, args.out)
+        except OSError as exc:
+            print(f"error: cannot write {args.out}: {exc}", file=sys.stderr)
+            return 2
+        print(f"wrote {args.out}")
+    agree = all(t["pass"] for t in res["targets"] if t["id"] == "B-5")
+    timing = all(t["pass"] for t in res["targets"] if t["id"] != "B-5")
+    return 0 if agree and (timing or not args.strict) else 1
+
+
+# Conformance functions of the samplers and guidance (chapters F, S, G) and the executor they feed.
+_DEMO_FUNCTIONS = ("velocity", "velocity_vjp", "naive_sample", "rtc_sample", "guided_sample", "guidance_weight",
+                   "method_weights", "hard_weights", "shift_prior", "execute_chunks")
+
+
+def demo() -> int:
+    """Demo step of `softrtc demo`: JAX against the conformance vectors, and fast vs straightforward chunks."""
+    t0 = time.perf_counter()
+    status = 0
+    try:
+        from softrtc.conformance import runner
+    except ModuleNotFoundError:
+        runner = None
+    if runner is not None:
+        print("JAX adapter against the conformance vectors of chapters F, S, G, X "
+              "(all vectors: softrtc conformance run --impl jax)")
+        res = runner.run("jax", only=set(_DEMO_FUNCTIONS))
+        summary = runner.format_summary(res).splitlines()
+        print(summary[0])
+        print(summary[-1])
+        status = 0 if res.ok else 1
+
+    from . import bench
+
+    cfg = bench.BenchConfig(arch="tiny", batch_sizes=(2,), calls=1, warmup=1, train_calls=0)
+    print("\nFast vs straightforward chunks, tiny flow policy, batch 2, d = 0 .. 4 ([B-5]):")
+    agree = bench.check_agreement(cfg, bench.make_policy(cfg), 2, ("naive", "inference_soft", "train_soft_lam2"))
+    for name, a in agree.items():
+        print(f"  {bench.CHUNK_ROWS[name][2]:<24s} max |fast - straightforward| = {a['max_abs_diff']:.1e}  "
+              f"{'PASS' if a['ok'] else 'FAIL'}")
+        status = status or (0 if a["ok"] else 1)
+    print(f"JAX demo: {time.perf_counter() - t0:.0f} s; runtime benchmark: softrtc bench runtime")
+    return status

@@ -1,0 +1,132 @@
+"""Tests of the runtime benchmark (spec/32-runtime-bench.md, chapter B); never assert on timings."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+nnx = pytest.importorskip("flax.nnx")
+import jax.numpy as jnp  # noqa: E402
+
+from softrtc.jax import bench  # noqa: E402
+from softrtc.jax import cli as jax_cli  # noqa: E402
+
+TINY = dict(arch="tiny", calls=3, warmup=1, batch_sizes=(1, 2), train_calls=2, train_batch=2, num_steps=2)
+
+
+@pytest.fixture(scope="module")
+def result():
+    return bench.run_benchmark(bench.BenchConfig(**TINY))
+
+
+def test_rows_and_json_structure(result, tmp_path):
+    """B-1, B-10: every method row plus the straightforward naive and train-soft rows, per batch size."""
+    keys = [r["key"] for r in result["rows"]]
+    assert keys == list(bench.CHUNK_ROWS) + ["naive/straightforward", "train_soft_lam2/straightforward"]
+    assert sorted(result["chunk"]) == ["1", "2"]
+    for per_b in result["chunk"].values():
+        assert list(per_b) == keys
+        for st in per_b.values():
+            assert st["calls"] == TINY["calls"]
+            assert st["p10_ms"] <= st["median_ms"] <= st["p90_ms"]
+    for key in ("config", "architecture", "environment", "agreement", "tolerance", "compilations",
+                "table_build_ms", "train_step", "targets", "seconds"):
+        assert key in result
+    path = tmp_path / "sub" / "bench.json"
+    bench.write_json(result, path)
+    assert json.loads(path.read_text())["rows"] == result["rows"]
+
+
+def test_ratios_are_against_naive_of_the_same_run(result):
+    """B-6: ratio = median of the row / median of the naive row of the same batch size."""
+    for per_b in result["chunk"].values():
+        naive = per_b["naive"]["median_ms"]
+        assert per_b["naive"]["ratio"] == pytest.approx(1.0)
+        for st in per_b.values():
+            assert st["ratio"] == pytest.approx(st["median_ms"] / naive, rel=1e-9)
+    ts = result["train_step"]
+    assert ts["soft_over_hard"] == pytest.approx(ts["soft"]["median_ms"] / ts["hard"]["median_ms"])
+    assert ts["soft_over_none"] == pytest.approx(ts["soft"]["median_ms"] / ts["none"]["median_ms"])
+
+
+def test_fast_and_straightforward_agree(result):
+    """B-3, B-4, B-5: the fast path gives the straightforward chunks within float32 tolerance."""
+    for per_b in result["agreement"].values():
+        assert sorted(per_b) == sorted(bench.CHUNK_ROWS)
+        for a in per_b.values():
+            assert a["ok"] and a["max_abs_diff"] <= 1e-4
+    assert [t for t in result["targets"] if t["id"] == "B-5"][0]["pass"]
+
+
+def test_one_compilation_per_batch_size(result):
+    """B-7: the delay is traced, so rotating d over 0..4 compiles each row once per batch size."""
+    assert result["config"]["delay"] is None
+    for i, per_b in enumerate(result["compilations"].values(), start=1):
+        assert set(per_b.values()) == {i}  # jit caches accumulate over the batch sizes
+
+
+def test_targets_and_table(result):
+    """B-8, B-9, B-10: every target is reported with PASS/FAIL and printed."""
+    names = [t["target"] for t in result["targets"]]
+    for B in (1, 2):
+        assert f"train-time samplers / naive, batch {B}" in names
+        assert f"naive / straightforward naive, batch {B}" in names
+        assert f"guided samplers / naive, batch {B}" in names
+    assert "soft / hard training step" in names
+    limits = {t["target"]: t["limit"] for t in result["targets"]}
+    assert limits["guided samplers / naive, batch 1"] == 1.7 and limits["guided samplers / naive, batch 2"] == 2.0
+    table = bench.format_table(result)
+    assert table.count("PASS") + table.count("FAIL") == len(result["targets"])
+    assert "max|fast-sf|" in table and "training step" in table
+
+
+def test_encode_obs_splits_the_input_projection():
+    """B-3: x W_x + encode_obs(obs) equals in_proj of the concatenation within float32 tolerance."""
+    cfg = bench.BenchConfig(arch="tiny")
+    pol = bench.make_policy(cfg)
+    rng = np.random.default_rng(0)
+    obs = jnp.asarray(rng.standard_normal((3, pol.obs_dim)), jnp.float32)
+    x = jnp.asarray(rng.standard_normal((3, 8, pol.action_dim)), jnp.float32)
+    cond = pol.time_conditioning(jnp.full((3, 8), 0.4))
+    a = pol.apply_conditioned(obs, x, cond)
+    b = pol.apply_conditioned(obs, x, cond, obs_encoding=pol.encode_obs(obs))
+    np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="obs_encoding"):
+        pol.apply_conditioned(obs, x, cond, obs_encoding=jnp.zeros((3, 16)))
+    with pytest.raises(ValueError, match="obs"):
+        pol.encode_obs(jnp.zeros((3, pol.obs_dim + 1)))
+
+
+def test_config_validation():
+    """N-7, B-2: invalid options raise ValueError naming the argument."""
+    for kw, name in [(dict(calls=0), "calls"), (dict(batch_sizes=(1, 1)), "batch_sizes"),
+                     (dict(batch_sizes=[1]), "batch_sizes"), (dict(delay=5), "delay"),
+                     (dict(path="slow"), "path"), (dict(arch="huge"), "arch"), (dict(calls=2.0), "calls"),
+                     (dict(execute_horizon=9), "execute_horizon")]:
+        with pytest.raises(ValueError, match=name):
+            bench.BenchConfig(**kw)
+    assert bench.BenchConfig().delays == (0, 1, 2, 3, 4)
+    assert bench.BenchConfig(delay=3).delays == (3,)
+    with pytest.raises(ValueError, match="config"):
+        bench.run_benchmark({"calls": 1})
+    with pytest.raises(ValueError, match="res"):
+        bench.format_table({})
+
+
+def test_cli_options(capsys):
+    """B-10: `softrtc bench runtime` parses its options; invalid ones exit with status 2."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    jax_cli.add_subparsers(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["bench", "runtime", "--batch-sizes", "1,4", "--delay", "2", "--calls", "7"])
+    assert args.batch_sizes == (1, 4) and args.delay == 2 and args.calls == 7 and args.path == "fast"
+    assert parser.parse_args(["bench", "runtime"]).out == "runs/bench_runtime.json"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["bench", "runtime", "--batch-sizes", "0"])
+    bad = parser.parse_args(["bench", "runtime", "--delay", "7"])
+    assert jax_cli.run_runtime(bad) == 2
+    assert "delay" in capsys.readouterr().err
