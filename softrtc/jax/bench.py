@@ -245,8 +245,10 @@ def _straightforward_fn(graphdef, treedef, method, window, s, T):
     return jax.jit(chunk)
 
 
-def build_rows(config: BenchConfig, policy: FlowPolicy) -> list[_Row]:
+def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row]:
     """The measured rows ([B-1], [B-3], [B-4], [B-7]): one jitted function per row, delay traced.
+
+    ``names`` (default all) restricts the rows to those keys of :data:`CHUNK_ROWS`.
 
     With ``path="fast"`` the six method rows use the fast path and the
     straightforward naive and train-soft (lam=2) samplers are rows of their
@@ -257,11 +259,14 @@ def build_rows(config: BenchConfig, policy: FlowPolicy) -> list[_Row]:
         raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
     if not isinstance(policy, FlowPolicy):
         raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
+    names = tuple(CHUNK_ROWS) if names is None else tuple(names)
+    for n in names:
+        check_choice("names entry", n, tuple(CHUNK_ROWS))
     graphdef, treedef, _ = _params(policy)
     H, s, T = policy.action_chunk_size, config.execute_horizon, config.num_steps
-    specs = [(name, config.path) for name in CHUNK_ROWS]
+    specs = [(name, config.path) for name in CHUNK_ROWS if name in names]
     if config.path == "fast":
-        specs += [(name, "straightforward") for name in REFERENCE_ROWS]
+        specs += [(name, "straightforward") for name in REFERENCE_ROWS if name in names]
     rows = []
     for name, path in specs:
         method, wspec, label = CHUNK_ROWS[name]
@@ -313,10 +318,8 @@ def check_agreement(config: BenchConfig, policy: FlowPolicy, batch: int, names=N
         raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
     check_int("batch", batch, 1, 1 << 16)
     names = tuple(CHUNK_ROWS) if names is None else tuple(names)
-    for n in names:
-        check_choice("names entry", n, tuple(CHUNK_ROWS))
     fast = dataclasses.replace(config, path="fast")
-    rows = [r for r in build_rows(fast, policy) if r.path == "fast" and r.name in names]
+    rows = [r for r in build_rows(fast, policy, names) if r.path == "fast"]
     graphdef, treedef, state = _params(policy)
     reference = {n: _straightforward_fn(graphdef, treedef, CHUNK_ROWS[n][0], _window(CHUNK_ROWS[n][1]),
                                         config.execute_horizon, config.num_steps) for n in names}
