@@ -144,51 +144,95 @@ def test_chunk_dataset_and_policy_output_head():
 
 
 def test_checkpoint_roundtrip_and_shipped_checkpoints(tmp_path):
-    """A-18, A-21: a saved policy reloads to the same chunks; the shipped set is small and complete."""
-    import json
-    from softrtc.arm.policies import default_checkpoint_dir, load_arm_checkpoint, save_arm_checkpoint
+    """A-18, A-21, T-11, T-12: a saved policy reloads to the same chunks; the shipped set is small and complete."""
+    from softrtc.arm.policies import (ARM_FORMAT, FEATURE_DIM, arm_train_config, default_checkpoint_dir,
+                                      load_arm_checkpoint, save_arm_checkpoint)
+    from softrtc.jax.checkpoint import read_checkpoint
 
     p = policy("train_hard")
-    path = save_arm_checkpoint(tmp_path / "p.npz", p.model, p.normalizer, CFG, "train_hard", {"note": 1})
+    tc = arm_train_config("train_hard", CFG, 10)
+    path = save_arm_checkpoint(tmp_path / "p.npz", p.model, p.normalizer, CFG, "train_hard", {"note": 1}, tc)
     q = load_arm_checkpoint(path)
-    assert q.method == "train_hard" and q.meta == {"note": 1}
+    assert q.method == "train_hard" and q.meta == {"note": 1} and q.train_config == tc.to_dict()
+    for k in ("obs_mean", "obs_std", "act_mean", "act_std"):
+        np.testing.assert_array_equal(getattr(q.normalizer, k), getattr(p.normalizer, k))
     obs = np.linspace(-1, 1, 34)
     c0 = p.generate(obs, None, 0, jax.random.key(3))
     np.testing.assert_array_equal(q.generate(obs, None, 0, jax.random.key(3)), c0)
     np.testing.assert_array_equal(q.generate(obs, c0, 3, jax.random.key(4)), p.generate(obs, c0, 3, jax.random.key(4)))
     with pytest.raises(ValueError, match="path"):
         load_arm_checkpoint(tmp_path / "missing.npz")
+    with pytest.raises(ValueError, match="method"):
+        save_arm_checkpoint(tmp_path / "q.npz", p.model, p.normalizer, CFG, "inference_soft")
     folder = default_checkpoint_dir()
     files = {f: folder / f for f in ("base.npz", "train_hard.npz", "train_soft.npz")}
     assert sum(f.stat().st_size for f in files.values()) < 5 * 2**20
     for name, f in files.items():
-        with np.load(f, allow_pickle=False) as z:
-            h = json.loads(str(z["header"]))
-            assert h["format"] == "softrtc-arm-policy-1" and h["config"]["horizon"] == 10
-            assert h["method"] == {"base.npz": "naive", "train_hard.npz": "train_hard",
-                                   "train_soft.npz": "train_soft"}[name]
-            assert z["obs_mean"].shape == (34,) and z["act_std"].shape == (4,)
+        _, header = read_checkpoint(f)
+        arm = header["metadata"]["arm"]
+        assert arm["format"] == ARM_FORMAT and arm["config"]["horizon"] == 10
+        assert header["policy"]["obs_dim"] == FEATURE_DIM
+        assert arm["method"] == {"base.npz": "naive", "train_hard.npz": "train_hard",
+                                 "train_soft.npz": "train_soft"}[name]
+        assert arm["train_config"]["method"] == {"base.npz": "none", "train_hard.npz": "hard",
+                                                 "train_soft.npz": "soft"}[name]
+        assert arm["train_config"]["execute_horizon"] == 5 and arm["train_config"]["d_max"] == 5
+        assert len(arm["normalizer"]["obs_mean"]) == FEATURE_DIM and len(arm["normalizer"]["act_std"]) == 4
+
+
+def test_policy_features_mark_the_current_part():
+    """A-17: the features append a one-hot of the first part not placed and tip-relative part/box offsets."""
+    from softrtc.arm.env import ArmSortEnv
+    from softrtc.arm.policies import FEATURE_DIM, policy_features
+
+    obs = ArmSortEnv().reset(3)
+    f = policy_features(obs)
+    assert f.shape == (FEATURE_DIM,)
+    np.testing.assert_array_equal(f[:34], obs)
+    np.testing.assert_array_equal(f[34:38], [1, 0, 0, 0])
+    np.testing.assert_allclose(f[38:40], obs[10:12] - obs[6:8])
+    np.testing.assert_allclose(f[40:42], obs[30:32] - obs[6:8])
+    done2 = obs.copy()
+    done2[[14, 19]] = 1.0  # blue parts placed: the current part is silver0, in the gray box
+    g = policy_features(done2)
+    np.testing.assert_array_equal(g[34:38], [0, 0, 1, 0])
+    np.testing.assert_allclose(g[38:40], obs[20:22] - obs[6:8])
+    np.testing.assert_allclose(g[40:42], obs[32:34] - obs[6:8])
+    alldone = obs.copy()
+    alldone[[14, 19, 24, 29]] = 1.0
+    assert not np.any(policy_features(alldone)[34:])
+    np.testing.assert_array_equal(policy_features(np.stack([obs, done2]))[1], g)
+    with pytest.raises(ValueError, match="obs"):
+        policy_features(np.zeros(33))
 
 
 def test_training_objectives_run_and_change_weights():
-    """A-20, D-1, D-4, C-1, L-1: a few keyed steps of each objective; fine-tuning leaves the base intact."""
+    """A-20, T-1, T-3, T-9, D-1, D-4: each objective maps to its chapter-T config; fine-tuning leaves the base intact."""
     import flax.nnx as nnx
-    from softrtc.arm.policies import Normalizer, train_flow_policy
+    from softrtc.arm.policies import FEATURE_DIM, Normalizer, arm_train_config, policy_features, train_flow_policy
+    from softrtc.reference.weights import SoftWindow as RefSoftWindow
 
     rng = np.random.default_rng(0)
     ds = {"obs": rng.normal(size=(32, 34)).astype(np.float32),
           "chunks": rng.normal(size=(32, CFG.horizon, 4)).astype(np.float32)}
-    norm = Normalizer.fit(ds["obs"], ds["chunks"].reshape(-1, 4))
-    base = train_flow_policy(ds, norm, "naive", 2, 0, config=CFG, batch_size=8)
+    norm = Normalizer.fit(policy_features(ds["obs"]), ds["chunks"].reshape(-1, 4))
+    base, losses, tc = train_flow_policy(ds, norm, "naive", 2, 0, config=CFG, batch_size=8)
+    assert losses.shape == (2,) and np.all(np.isfinite(losses)) and tc.method == "none"
+    assert base.obs_dim == FEATURE_DIM
     before = jax.tree_util.tree_leaves(nnx.state(base))
-    soft = train_flow_policy(ds, norm, "train_soft", 2, 1, config=CFG, init=base, batch_size=8)
+    soft, _, tc = train_flow_policy(ds, norm, "train_soft", 2, 1, config=CFG, init=base, batch_size=8)
     after = jax.tree_util.tree_leaves(nnx.state(base))
     assert all(np.array_equal(a, b) for a, b in zip(before, after))
     assert any(not np.array_equal(a, b) for a, b in zip(before, jax.tree_util.tree_leaves(nnx.state(soft))))
+    assert tc.method == "soft" and tc.window == RefSoftWindow() and tc.execute_horizon == CFG.execute_horizon
+    assert (tc.delay_dist, tc.d_min, tc.d_max) == ("uniform", 0, CFG.max_delay)
+    assert arm_train_config("train_hard", CFG, 100).method == "hard"
     with pytest.raises(ValueError, match="method"):
         train_flow_policy(ds, norm, "inference_soft", 2, 0, config=CFG)
     with pytest.raises(ValueError, match="steps"):
         train_flow_policy(ds, norm, "naive", 0, 0, config=CFG)
+    with pytest.raises(ValueError, match="init"):
+        train_flow_policy(ds, norm, "naive", 2, 0, config=CFG, init=object())
 
 
 def test_study_metrics_table_and_plot(tmp_path):

@@ -33,9 +33,9 @@ def add_subparsers(subparsers) -> None:
 
     tr = sub.add_parser("train", help="demos, base BC flow policy, Train Hard / Soft RTC fine-tunes ([A-20])")
     tr.add_argument("--out", default=None, help="checkpoint folder (default: softrtc/arm/checkpoints)")
-    tr.add_argument("--episodes", type=_pos_int, default=100, help="DART demo episodes (default 100)")
+    tr.add_argument("--episodes", type=_pos_int, default=400, help="DART demo episodes (default 400)")
     tr.add_argument("--steps", type=_pos_int, default=4000, help="base training steps (default 4000)")
-    tr.add_argument("--finetune-steps", type=_pos_int, default=1500, help="RTC fine-tune steps (default 1500)")
+    tr.add_argument("--finetune-steps", type=_pos_int, default=800, help="RTC fine-tune steps (default 800)")
     tr.add_argument("--seed", type=_nonneg_int, default=0, help="seed of demos and training (default 0)")
     tr.set_defaults(func=_train)
 

@@ -2,22 +2,22 @@
 
 A small MLP-Mixer flow policy (``softrtc.jax.policy.FlowPolicy``) is trained by
 behaviour cloning on DART demonstrations of the scripted expert ([A-15]), then
-fine-tuned with training-time Hard RTC and Soft RTC (spec chapters D, C, L).
-Observations and actions are normalized per dimension; the statistics travel
-with the checkpoint ([A-18]). Chunks leave the policy in physical units and
-inside the action ranges of [A-8] ([A-19]).
-
-Training uses the JAX twin's corruption and loss (``softrtc.jax.loss.rtc_loss``,
-[C-1], [C-2], [L-1]..[L-3]), its delay sampler ([D-1], [D-3]) and its weights
-([W-7], [W-8]); inference uses ``softrtc.jax.methods`` ([S-6]).
+fine-tuned with training-time Hard RTC and Soft RTC. Training is
+``softrtc.jax.training.train`` (chapter T: [T-1]..[T-9]) and checkpoints are
+``softrtc.jax.checkpoint`` files ([T-11], [T-12]) whose metadata carries the
+arm config, the normalization statistics and the training config ([A-18]).
+The policy reads the observation plus a few target features ([A-17]);
+features and actions are normalized per dimension. Chunks leave the policy in
+physical units and inside the action ranges of [A-8] ([A-19]); inference uses
+``softrtc.jax.methods`` ([S-6]).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
+import time
 from functools import partial
 from pathlib import Path
 
@@ -25,31 +25,43 @@ import flax.nnx as nnx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
-from softrtc.jax import delays as jdelays
 from softrtc.jax import methods as jmethods
 from softrtc.jax import sampler as jsampler
-from softrtc.jax.loss import rtc_loss
+from softrtc.jax.checkpoint import load_checkpoint, save_checkpoint
 from softrtc.jax.policy import FlowPolicy, PolicyConfig
-from softrtc.jax.weights import SoftWindow, hard_weights, weight_table
+from softrtc.jax.training import TrainConfig, train
+from softrtc.jax.weights import SoftWindow
+from softrtc.reference.weights import SoftWindow as RefSoftWindow
 
-from .env import ACTION_DIM, OBS_DIM, ArmConfig
+from .env import ACTION_DIM, NUM_OBJECTS, OBJECT_TARGET_BOX, OBS_DIM, OBS_SLICES, ArmConfig
 
 __all__ = [
     "ArmPolicyConfig", "Normalizer", "ArmPolicy", "TRAIN_METHODS", "STUDY_METHODS", "METHOD_LABELS",
-    "chunk_dataset", "train_flow_policy", "save_arm_checkpoint", "load_arm_checkpoint",
-    "train_arm_policies", "default_checkpoint_dir", "load_policies", "untrained_policy", "action_bounds",
+    "FEATURE_DIM", "policy_features", "chunk_dataset", "arm_train_config", "train_flow_policy",
+    "save_arm_checkpoint", "load_arm_checkpoint", "train_arm_policies", "default_checkpoint_dir",
+    "load_policies", "untrained_policy", "action_bounds",
 ]
 
 # Training objective of each checkpoint ([A-20]): base = ordinary flow matching (w = 0).
 TRAIN_METHODS = ("naive", "train_hard", "train_soft")
+# The chapter-T method of each objective ([T-3]).
+_OBJECTIVE = {"naive": "none", "train_hard": "hard", "train_soft": "soft"}
 # The study's three policies and the sampler each is run with ([S-6]).
 STUDY_METHODS = ("naive", "train_hard", "train_soft")
 METHOD_LABELS = {"naive": "Base", "train_hard": "Train Hard RTC", "train_soft": "Train Soft RTC",
                  "inference_hard": "Inference Hard RTC", "inference_soft": "Inference Soft RTC"}
 _CKPT_FILES = {"naive": "base.npz", "train_hard": "train_hard.npz", "train_soft": "train_soft.npz"}
-_FORMAT = "softrtc-arm-policy-1"
+# Tag of the arm section in a chapter-T checkpoint's metadata ([A-18]).
+ARM_FORMAT = "softrtc-arm-policy-2"
+
+# [A-17] policy input: the observation, a one-hot of the current part (the first not completed, as the
+# expert picks it, [A-13]) and the tip-relative offsets of that part and of its box. The placed flags
+# alone make the current part a discrete function of 4 inputs; handing it over explicitly lets a small
+# network switch parts after a placement instead of averaging the phases.
+FEATURE_DIM = OBS_DIM + NUM_OBJECTS + 4
+_PLACED = np.array([10 + 5 * k + 4 for k in range(NUM_OBJECTS)])
+_BOX_OF = np.array(OBJECT_TARGET_BOX)
 
 
 def _check_int(name, value, lo, hi=None) -> int:
@@ -83,6 +95,27 @@ def action_bounds(env_config: ArmConfig | None = None) -> tuple[np.ndarray, np.n
     return (np.array([*cfg.joint_low, 0.0], np.float64), np.array([*cfg.joint_high, 1.0], np.float64))
 
 
+def policy_features(obs) -> np.ndarray:
+    """Policy input ``[..., FEATURE_DIM]`` from observations ``[..., 34]`` ([A-17]).
+
+    The observation, then a one-hot of the current part (the first whose placed
+    flag is not set; all zeros once every part is placed), then the current
+    part's ``(x, y)`` and its box's ``(centre x, floor y)`` minus the gripper
+    tip (zeros once every part is placed).
+    """
+    o = np.asarray(obs, np.float64)
+    if o.ndim < 1 or o.shape[-1] != OBS_DIM or not np.all(np.isfinite(o)):
+        raise ValueError(f"obs must be a finite array of shape [..., {OBS_DIM}], got shape {list(o.shape)}")
+    todo = o[..., _PLACED] < 0.5
+    left = todo.any(-1, keepdims=True)
+    k = np.argmax(todo, -1)
+    onehot = np.eye(NUM_OBJECTS)[k] * left
+    tip = o[..., OBS_SLICES["ee"]]
+    part = np.take_along_axis(o, (10 + 5 * k)[..., None] + np.arange(2), -1)
+    box = np.take_along_axis(o, (30 + 2 * _BOX_OF[k])[..., None] + np.arange(2), -1)
+    return np.concatenate([o, onehot, (part - tip) * left, (box - tip) * left], -1)
+
+
 @dataclasses.dataclass(frozen=True)
 class ArmPolicyConfig:
     """Horizon, execute horizon, Euler steps and network sizes of the arm policies ([A-17]).
@@ -94,9 +127,9 @@ class ArmPolicyConfig:
     horizon: int = 10
     execute_horizon: int = 5
     num_steps: int = 5
-    channel_dim: int = 64
-    channel_hidden_dim: int = 128
-    token_hidden_dim: int = 16
+    channel_dim: int = 128
+    channel_hidden_dim: int = 256
+    token_hidden_dim: int = 32
     num_layers: int = 2
 
     def __post_init__(self):
@@ -116,27 +149,47 @@ class ArmPolicyConfig:
         return min(self.execute_horizon, self.horizon - self.execute_horizon)
 
     def policy_config(self) -> PolicyConfig:
+        """The ``FlowPolicy`` sizes ([P-1]) with ``action_chunk_size = horizon``."""
         return PolicyConfig(channel_dim=self.channel_dim, channel_hidden_dim=self.channel_hidden_dim,
                             token_hidden_dim=self.token_hidden_dim, num_layers=self.num_layers,
                             action_chunk_size=self.horizon)
 
 
+def _new_model(config: ArmPolicyConfig, seed: int) -> FlowPolicy:
+    return FlowPolicy(obs_dim=FEATURE_DIM, action_dim=ACTION_DIM, config=config.policy_config(),
+                      rngs=nnx.Rngs(seed))
+
+
+def _stats(name, value, dim) -> np.ndarray:
+    a = np.asarray(value, np.float64)
+    if a.shape != (dim,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be a finite vector of shape [{dim}], got shape {list(a.shape)}")
+    return a
+
+
 @dataclasses.dataclass(frozen=True)
 class Normalizer:
-    """Per-dimension affine normalization of observations and actions ([A-18])."""
+    """Per-dimension affine normalization of policy features and actions ([A-18])."""
 
     obs_mean: np.ndarray
     obs_std: np.ndarray
     act_mean: np.ndarray
     act_std: np.ndarray
 
+    def __post_init__(self):
+        for name, dim in (("obs_mean", FEATURE_DIM), ("obs_std", FEATURE_DIM), ("act_mean", ACTION_DIM),
+                          ("act_std", ACTION_DIM)):
+            object.__setattr__(self, name, _stats(name, getattr(self, name), dim))
+        if np.any(self.obs_std <= 0) or np.any(self.act_std <= 0):
+            raise ValueError("obs_std and act_std must be positive")
+
     @staticmethod
-    def fit(obs, actions) -> "Normalizer":
+    def fit(features, actions) -> "Normalizer":
         """Mean and std of the data; a std below 1e-3 (a constant entry) is raised to 1 so it is not amplified."""
-        obs = np.asarray(obs, np.float64)
+        features = np.asarray(features, np.float64)
         actions = np.asarray(actions, np.float64)
-        if obs.ndim != 2 or obs.shape[1] != OBS_DIM or obs.shape[0] < 2:
-            raise ValueError(f"obs must have shape [N >= 2, {OBS_DIM}], got {list(obs.shape)}")
+        if features.ndim != 2 or features.shape[1] != FEATURE_DIM or features.shape[0] < 2:
+            raise ValueError(f"features must have shape [N >= 2, {FEATURE_DIM}], got {list(features.shape)}")
         if actions.ndim != 2 or actions.shape[1] != ACTION_DIM or actions.shape[0] < 2:
             raise ValueError(f"actions must have shape [N >= 2, {ACTION_DIM}], got {list(actions.shape)}")
 
@@ -144,10 +197,21 @@ class Normalizer:
             s = x.std(axis=0)
             return np.where(s < 1e-3, 1.0, s)
 
-        return Normalizer(obs.mean(0), std(obs), actions.mean(0), std(actions))
+        return Normalizer(features.mean(0), std(features), actions.mean(0), std(actions))
 
-    def obs(self, o):
-        return (np.asarray(o, np.float64) - self.obs_mean) / self.obs_std
+    def to_dict(self) -> dict:
+        """JSON-able statistics (float64 values round-trip exactly through JSON)."""
+        return {k: [float(x) for x in getattr(self, k)] for k in ("obs_mean", "obs_std", "act_mean", "act_std")}
+
+    @staticmethod
+    def from_dict(data) -> "Normalizer":
+        """Inverse of :meth:`to_dict` (validated)."""
+        if not isinstance(data, dict) or set(data) != {"obs_mean", "obs_std", "act_mean", "act_std"}:
+            raise ValueError("data must be a dict with obs_mean, obs_std, act_mean, act_std (Normalizer.to_dict)")
+        return Normalizer(**{k: np.asarray(v, np.float64) for k, v in data.items()})
+
+    def obs(self, features):
+        return (np.asarray(features, np.float64) - self.obs_mean) / self.obs_std
 
     def act(self, a):
         return (np.asarray(a, np.float64) - self.act_mean) / self.act_std
@@ -161,7 +225,8 @@ def chunk_dataset(data: dict, horizon: int) -> dict:
 
     The chunk of row i holds the labels of rows i .. i+H-1 of its episode; past
     the episode's last row the last label is repeated (the arm holds its final
-    command), so every row of every episode yields one example.
+    command), so every row of every episode yields one example. ``obs`` are the
+    raw observations; :func:`policy_features` maps them to the policy input.
     """
     horizon = _check_int("horizon", horizon, 1, 64)
     if not isinstance(data, dict) or not {"obs", "action", "episode_start", "episode_length"} <= set(data):
@@ -175,163 +240,124 @@ def chunk_dataset(data: dict, horizon: int) -> dict:
     return {"obs": obs[idx[:, 0]], "chunks": act[idx]}
 
 
-def _weight_table(method: str, H: int, s: int, d_max: int) -> jnp.ndarray:
-    """Training weights for delays 0..d_max ([S-6]): zeros, 1[j < d] ([W-8]) or soft ([W-7])."""
-    ds = jnp.arange(d_max + 1, dtype=jnp.int32)
-    if method == "naive":
-        return jnp.zeros((d_max + 1, H), jnp.float32)
-    if method == "train_hard":
-        return jax.vmap(lambda d: hard_weights(H, d))(ds)
-    return weight_table(H, SoftWindow(), s)[: d_max + 1]
+def arm_train_config(method: str, config: ArmPolicyConfig, steps: int, batch_size: int = 256,
+                     learning_rate: float = 1e-3) -> TrainConfig:
+    """The chapter-T config of an arm objective ([A-20], [T-1]).
+
+    ``naive`` -> ``none``, ``train_hard`` -> ``hard``, ``train_soft`` -> ``soft``
+    with the default window of [W-7] (delay-scaled, lambda = 2, h_max = 5,
+    linear, rtc, clip); ``execute_horizon`` = s; delays uniform on
+    ``0 .. min(s, H - s)`` ([D-1], [D-4]); AdamW (weight decay 1e-4) with
+    gradient clipping at 1, linear warm-up over ``min(200, steps // 10)``
+    steps, then cosine decay to 5% of ``learning_rate`` at ``steps`` ([T-6]).
+    """
+    method = _check_choice("method", method, TRAIN_METHODS)
+    if not isinstance(config, ArmPolicyConfig):
+        raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
+    steps = _check_int("steps", steps, 1, 10**7)
+    batch_size = _check_int("batch_size", batch_size, 1, 1 << 16)
+    learning_rate = _check_float("learning_rate", learning_rate, 0.0, 1.0, lo_open=True)
+    return TrainConfig(method=_OBJECTIVE[method], window=RefSoftWindow(), execute_horizon=config.execute_horizon,
+                       delay_dist="uniform", d_min=0, d_max=config.max_delay, batch_size=batch_size,
+                       learning_rate=learning_rate, weight_decay=1e-4, grad_clip_norm=1.0,
+                       warmup_steps=min(200, steps // 10), decay_steps=steps, final_lr_ratio=0.05)
 
 
 def train_flow_policy(dataset: dict, normalizer: Normalizer, method: str, steps: int, seed: int, *,
                       config: ArmPolicyConfig = ArmPolicyConfig(), init: FlowPolicy | None = None,
-                      batch_size: int = 64, learning_rate: float = 1e-3, log_every: int = 0) -> FlowPolicy:
+                      batch_size: int = 256, learning_rate: float = 1e-3,
+                      progress: bool = False) -> tuple[FlowPolicy, np.ndarray, TrainConfig]:
     """Train (or fine-tune ``init``) a flow policy with the objective of ``method`` ([A-20]).
 
-    ``naive`` is ordinary flow matching (weights 0, [C-3], [L-4]); ``train_hard``
-    and ``train_soft`` draw one delay per example uniformly from
-    ``0 .. min(s, H - s)`` ([D-1], [D-4]) and use the weights of [W-8] / [W-7]
-    (lambda = 2, h_max = 5, linear, rtc, clip). Every random draw (batch rows,
-    flow times, noise, delays) comes from ``jax.random.key(seed)`` ([N-9]).
-    ``init`` is copied, never modified.
+    Delegates to ``softrtc.jax.training.train`` ([T-9]) with
+    :func:`arm_train_config`; the data are the normalized policy features and
+    chunks of ``dataset`` (:func:`chunk_dataset`). A new policy is initialised
+    with ``nnx.Rngs(seed)``; every training draw comes from
+    ``jax.random.key(seed)`` ([T-8], [N-9]). ``init`` is not modified ([T-9]).
+    Returns ``(policy, per-step losses, TrainConfig)``.
     """
-    method = _check_choice("method", method, TRAIN_METHODS)
-    steps = _check_int("steps", steps, 1, 10**7)
+    tc = arm_train_config(method, config, steps, batch_size, learning_rate)
     seed = _check_int("seed", seed, 0, 2**31 - 1)
-    batch_size = _check_int("batch_size", batch_size, 1, 1 << 16)
-    learning_rate = _check_float("learning_rate", learning_rate, 0.0, 1.0, lo_open=True)
-    log_every = _check_int("log_every", log_every, 0)
-    if not isinstance(config, ArmPolicyConfig):
-        raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
     if not isinstance(normalizer, Normalizer):
         raise ValueError(f"normalizer must be a Normalizer, got {type(normalizer).__name__}")
     if not isinstance(dataset, dict) or "obs" not in dataset or "chunks" not in dataset:
-        raise ValueError("dataset must be a dict with 'obs' [N, 34] and 'chunks' [N, H, 4] (chunk_dataset)")
-    H, s = config.horizon, config.execute_horizon
-    if dataset["chunks"].shape[1:] != (H, ACTION_DIM) or dataset["obs"].shape[1:] != (OBS_DIM,):
-        raise ValueError(f"dataset chunks must have shape [N, {H}, {ACTION_DIM}], got {dataset['chunks'].shape}")
-
-    obs = jnp.asarray(normalizer.obs(dataset["obs"]), jnp.float32)
-    chunks = jnp.asarray(normalizer.act(dataset["chunks"]), jnp.float32)
-    N = obs.shape[0]
-    d_max = config.max_delay
-    table = _weight_table(method, H, s, d_max)
-    probs = jdelays.delay_probs("uniform", 0, d_max)
-
-    key = jax.random.key(seed)
-    key, init_key = jax.random.split(key)
+        raise ValueError(f"dataset must be a dict with 'obs' [N, {OBS_DIM}] and 'chunks' [N, H, 4] (chunk_dataset)")
+    H = config.horizon
+    chunks = np.asarray(dataset["chunks"])
+    if chunks.ndim != 3 or chunks.shape[1:] != (H, ACTION_DIM):
+        raise ValueError(f"dataset chunks must have shape [N, {H}, {ACTION_DIM}], got {list(chunks.shape)}")
+    obs = normalizer.obs(policy_features(dataset["obs"]))
+    if obs.shape[0] != chunks.shape[0]:
+        raise ValueError(f"dataset obs and chunks must have the same length, got {obs.shape[0]} and {chunks.shape[0]}")
     if init is None:
-        model = FlowPolicy(obs_dim=OBS_DIM, action_dim=ACTION_DIM, config=config.policy_config(),
-                           rngs=nnx.Rngs(int(jax.random.randint(init_key, (), 0, 2**31 - 1))))
-    else:
-        if not isinstance(init, FlowPolicy):
-            raise ValueError(f"init must be a FlowPolicy or None, got {type(init).__name__}")
-        # A deep copy (split/merge alone would share the parameter variables): fine-tuning leaves the base intact.
-        gd, st = nnx.split(init)
-        model = nnx.merge(gd, jax.tree_util.tree_map(jnp.copy, st))
-    schedule = optax.warmup_cosine_decay_schedule(0.0, learning_rate, min(200, steps // 10 + 1), steps,
-                                                  learning_rate * 0.05)
-    opt = nnx.Optimizer(model, optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=1e-4)),
-                        wrt=nnx.Param)
-
-    # probs and table are arguments (not closure constants) so they are traced inside jit.
-    @nnx.jit
-    def step(model, opt, key, probs, table):
-        k_idx, k_tau, k_eps, k_d = jax.random.split(key, 4)
-        rows = jax.random.randint(k_idx, (batch_size,), 0, N)
-        o, a = obs[rows], chunks[rows]
-        tau = jax.random.uniform(k_tau, (batch_size,))
-        eps = jax.random.normal(k_eps, a.shape)
-        d = jdelays.sample_delays(k_d, probs, 0, (batch_size,))
-        w = table[d]
-
-        def loss_fn(m):
-            return rtc_loss(m, o, a, eps, w, tau)
-
-        loss, grads = nnx.value_and_grad(loss_fn)(model)
-        opt.update(model, grads)
-        return loss
-
-    running = None
-    for i in range(steps):
-        key, sub = jax.random.split(key)
-        loss = step(model, opt, sub, probs, table)
-        if log_every and ((i + 1) % log_every == 0 or i == 0):
-            lv = float(loss)
-            running = lv if running is None else running
-            print(f"  [{method}] step {i + 1}/{steps} loss {lv:.4f}", flush=True)
-    return model
+        init = _new_model(config, seed)
+    elif not isinstance(init, FlowPolicy):
+        raise ValueError(f"init must be a FlowPolicy or None, got {type(init).__name__}")
+    elif init.config != config.policy_config() or init.obs_dim != FEATURE_DIM:
+        raise ValueError("init must have the architecture of config (ArmPolicyConfig.policy_config)")
+    data = {"obs": jnp.asarray(obs, jnp.float32), "actions": jnp.asarray(normalizer.act(chunks), jnp.float32)}
+    model, losses = train(init, data, tc, jax.random.key(seed), steps, progress=progress)
+    return model, losses, tc
 
 
 # --------------------------------------------------------------------------- checkpoints
 
 
-def _flatten(tree, prefix=""):
-    out = {}
-    for k, v in tree.items():
-        name = f"{prefix}/{k}" if prefix else str(k)
-        if isinstance(v, dict):
-            out.update(_flatten(v, name))
-        else:
-            out[name] = np.asarray(v)
-    return out
-
-
-def _unflatten(flat: dict) -> dict:
-    tree: dict = {}
-    for name, arr in flat.items():
-        node = tree
-        parts = name.split("/")
-        for p in parts[:-1]:
-            node = node.setdefault(int(p) if p.isdigit() else p, {})
-        node[int(parts[-1]) if parts[-1].isdigit() else parts[-1]] = arr
-    return tree
-
-
 def save_arm_checkpoint(path, model: FlowPolicy, normalizer: Normalizer, config: ArmPolicyConfig,
-                        method: str, meta: dict | None = None) -> str:
-    """Write parameters, normalization statistics and config to one ``.npz`` ([A-18]).
+                        method: str, meta: dict | None = None, train_config: TrainConfig | None = None) -> str:
+    """Write an arm policy as a chapter-T checkpoint ([A-18], [T-11]).
 
-    No pickle: parameters are stored as named float32 arrays (``param/<path>``),
-    the config and metadata as JSON strings.
+    ``softrtc.jax.checkpoint.save_checkpoint`` stores the parameters; its
+    metadata holds ``{"arm": {"format": ARM_FORMAT, "method", "config",
+    "normalizer", "train_config", "meta"}}`` (all JSON).
     """
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path).endswith(".npz"):
         raise ValueError(f"path must be a str or PathLike ending in '.npz', got {path!r}")
-    if not os.path.isdir(os.path.dirname(os.path.abspath(os.fspath(path)))):
-        raise ValueError(f"path's folder does not exist: {path!r}")
     if not isinstance(model, FlowPolicy):
         raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
+    if not isinstance(normalizer, Normalizer):
+        raise ValueError(f"normalizer must be a Normalizer, got {type(normalizer).__name__}")
+    if not isinstance(config, ArmPolicyConfig):
+        raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
+    if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
+        raise ValueError("model must have the architecture of config (ArmPolicyConfig.policy_config)")
     method = _check_choice("method", method, TRAIN_METHODS)
-    params = {f"param/{k}": v.astype(np.float32) for k, v in _flatten(nnx.state(model).to_pure_dict()).items()}
-    header = {"format": _FORMAT, "method": method, "config": dataclasses.asdict(config), "meta": meta or {}}
-    np.savez_compressed(path, header=np.array(json.dumps(header)),
-                        obs_mean=normalizer.obs_mean, obs_std=normalizer.obs_std,
-                        act_mean=normalizer.act_mean, act_std=normalizer.act_std, **params)
+    if meta is not None and not isinstance(meta, dict):
+        raise ValueError(f"meta must be a dict or None, got {type(meta).__name__}")
+    if train_config is not None and not isinstance(train_config, TrainConfig):
+        raise ValueError(f"train_config must be a TrainConfig or None, got {type(train_config).__name__}")
+    arm = {"format": ARM_FORMAT, "method": method, "config": dataclasses.asdict(config),
+           "normalizer": normalizer.to_dict(), "train_config": None if train_config is None else train_config.to_dict(),
+           "meta": meta or {}}
+    save_checkpoint(path, model, {"arm": arm})
     return os.fspath(path)
 
 
 def load_arm_checkpoint(path, sampler_method: str | None = None) -> "ArmPolicy":
-    """Load a checkpoint written by :func:`save_arm_checkpoint` into an :class:`ArmPolicy` ([A-18]).
+    """Load a checkpoint written by :func:`save_arm_checkpoint` into an :class:`ArmPolicy` ([A-18], [T-12]).
 
     ``sampler_method`` (default: the method the checkpoint was trained with)
     selects the chunk generator ([S-6]); e.g. ``inference_soft`` on the base.
     """
     if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
         raise ValueError(f"path must name an existing checkpoint .npz file, got {path!r}")
-    with np.load(path, allow_pickle=False) as f:
-        header = json.loads(str(f["header"]))
-        if header.get("format") != _FORMAT:
-            raise ValueError(f"path {path!r} is not a softrtc arm checkpoint (format {header.get('format')!r})")
-        norm = Normalizer(f["obs_mean"], f["obs_std"], f["act_mean"], f["act_std"])
-        params = {k[len("param/"):]: f[k] for k in f.files if k.startswith("param/")}
-    config = ArmPolicyConfig(**header["config"])
-    model = FlowPolicy(obs_dim=OBS_DIM, action_dim=ACTION_DIM, config=config.policy_config(), rngs=nnx.Rngs(0))
-    from softrtc.jax.policy import load_pure_dict
-    load_pure_dict(model, _unflatten(params))
-    return ArmPolicy(model, norm, config, sampler_method or header["method"], trained_as=header["method"],
-                     meta=header.get("meta", {}))
+    if sampler_method is not None:
+        _check_choice("sampler_method", sampler_method, jmethods.METHODS)
+    model, metadata = load_checkpoint(path)
+    arm = metadata.get("arm") if isinstance(metadata, dict) else None
+    if not isinstance(arm, dict) or arm.get("format") != ARM_FORMAT:
+        raise ValueError(f"path {os.fspath(path)!r} is not a softrtc arm checkpoint (no '{ARM_FORMAT}' metadata)")
+    try:
+        config = ArmPolicyConfig(**arm["config"])
+        norm = Normalizer.from_dict(arm["normalizer"])
+        method = _check_choice("method", arm["method"], TRAIN_METHODS)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"path {os.fspath(path)!r}: invalid arm metadata ({exc})") from exc
+    if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
+        raise ValueError(f"path {os.fspath(path)!r}: stored policy does not match its arm config")
+    pol = ArmPolicy(model, norm, config, sampler_method or method, trained_as=method, meta=arm.get("meta", {}))
+    pol.train_config = arm.get("train_config")
+    return pol
 
 
 # --------------------------------------------------------------------------- inference
@@ -387,7 +413,10 @@ class ArmPolicy:
         self.method = _check_choice("method", method, jmethods.METHODS)
         self.trained_as = trained_as or method
         self.meta = dict(meta or {})
+        if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
+            raise ValueError("model must have the architecture of config (ArmPolicyConfig.policy_config)")
         self.model, self.normalizer, self.config = model, normalizer, config
+        self.train_config = None
         self.H, self.s, self.T = config.horizon, config.execute_horizon, config.num_steps
         self.low, self.high = action_bounds(env_config)
         self._graphdef, self._state = nnx.split(model)
@@ -401,7 +430,7 @@ class ArmPolicy:
         o = np.asarray(obs, np.float64)
         if o.shape != (OBS_DIM,) or not np.all(np.isfinite(o)):
             raise ValueError(f"obs must be a finite vector of shape [{OBS_DIM}], got shape {list(o.shape)}")
-        return jnp.asarray(o, jnp.float32)
+        return jnp.asarray(policy_features(o), jnp.float32)
 
     def generate(self, obs, prior, d, key) -> np.ndarray:
         """One chunk ``[H, 4]`` (float64, physical units, within [A-8]) for delay ``d`` ([S-6], [A-19])."""
@@ -437,8 +466,10 @@ def untrained_policy(seed: int = 0, method: str = "naive", config: ArmPolicyConf
     """
     seed = _check_int("seed", seed, 0, 2**31 - 1)
     method = _check_choice("method", method, jmethods.METHODS)
-    model = FlowPolicy(obs_dim=OBS_DIM, action_dim=ACTION_DIM, config=config.policy_config(), rngs=nnx.Rngs(seed))
-    norm = Normalizer(np.zeros(OBS_DIM), np.ones(OBS_DIM), np.array([0.0, -1.0, 0.0, 0.5]),
+    if not isinstance(config, ArmPolicyConfig):
+        raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
+    model = _new_model(config, seed)
+    norm = Normalizer(np.zeros(FEATURE_DIM), np.ones(FEATURE_DIM), np.array([0.0, -1.0, 0.0, 0.5]),
                       np.array([0.3, 0.3, 0.3, 0.3]))
     return ArmPolicy(model, norm, config, method, trained_as="untrained", window=window)
 
@@ -453,6 +484,10 @@ def load_policies(checkpoint_dir=None, methods=STUDY_METHODS) -> dict:
 
     Method ``naive`` and the inference-time methods use the base checkpoint.
     """
+    if checkpoint_dir is not None and not isinstance(checkpoint_dir, (str, os.PathLike)):
+        raise ValueError(f"checkpoint_dir must be a str, PathLike or None, got {checkpoint_dir!r}")
+    if isinstance(methods, str) or not hasattr(methods, "__iter__"):
+        raise ValueError(f"methods must be a sequence of method names, got {methods!r}")
     folder = Path(default_checkpoint_dir() if checkpoint_dir is None else checkpoint_dir)
     if not folder.is_dir():
         raise ValueError(f"checkpoint_dir must be an existing folder, got {str(folder)!r}")
@@ -466,52 +501,73 @@ def load_policies(checkpoint_dir=None, methods=STUDY_METHODS) -> dict:
     return out
 
 
-def train_arm_policies(out_dir, episodes: int = 100, steps: int = 4000, finetune_steps: int | None = None,
+def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune_steps: int | None = 800,
                        seed: int = 0, noise_std: float = 0.03, config: ArmPolicyConfig = ArmPolicyConfig(),
-                       batch_size: int = 64, verbose: bool = True) -> dict:
+                       batch_size: int = 128, learning_rate: float = 1e-3, demos=None,
+                       verbose: bool = True) -> dict:
     """Demos, base BC policy, then Train Hard / Train Soft RTC fine-tunes, saved to ``out_dir`` ([A-20]).
 
-    Demonstrations: ``generate_demos(episodes, seed, noise_std)`` ([A-15]).
-    The base is trained for ``steps`` steps with key ``seed``; each fine-tune
-    starts from the base and runs ``finetune_steps`` (default ``steps // 2``)
-    with key ``seed + 1`` (hard) and ``seed + 2`` (soft). Returns the paths.
+    Demonstrations: ``generate_demos(episodes, seed, noise_std)`` ([A-15]), or
+    the file ``demos`` written by it with those arguments (checked against its
+    stored seed and noise level). The base is trained for ``steps`` steps with
+    seed ``seed``; each fine-tune starts from the base and runs
+    ``finetune_steps`` (default ``steps // 4``) with seed ``seed + 1`` (hard)
+    and ``seed + 2`` (soft), learning rate ``learning_rate / 3``. Training is
+    :func:`train_flow_policy` ([T-9]). Returns ``{method: path}``.
     """
-    import time
     from .demos import generate_demos, load_demos
 
     if not isinstance(out_dir, (str, os.PathLike)):
         raise ValueError(f"out_dir must be a str or PathLike, got {out_dir!r}")
     episodes = _check_int("episodes", episodes, 1, 100000)
     steps = _check_int("steps", steps, 1, 10**7)
-    finetune_steps = steps // 2 if finetune_steps is None else _check_int("finetune_steps", finetune_steps, 1, 10**7)
-    finetune_steps = max(finetune_steps, 1)
+    finetune_steps = max(steps // 4, 1) if finetune_steps is None else _check_int("finetune_steps", finetune_steps, 1,
+                                                                                   10**7)
     seed = _check_int("seed", seed, 0, 2**31 - 3)
     noise_std = _check_float("noise_std", noise_std, 0.0, 1.0)
+    learning_rate = _check_float("learning_rate", learning_rate, 0.0, 1.0, lo_open=True)
+    if not isinstance(config, ArmPolicyConfig):
+        raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    demo_path = out / "demos.npz"
-    info = generate_demos(episodes, seed, noise_std, str(demo_path))
-    data = load_demos(str(demo_path))
-    demo_path.unlink()  # the demos are reproducible from (episodes, seed, noise_std); do not ship them
-    if verbose:
-        print(f"demos: {info['episodes']} episodes, {info['steps']} steps, expert success "
-              f"{info['success_rate']:.2f} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    ds = chunk_dataset(data, config.horizon)
-    norm = Normalizer.fit(data["obs"], data["action"])
-    meta = {"episodes": episodes, "seed": seed, "noise_std": noise_std, "steps": steps,
-            "finetune_steps": finetune_steps, "batch_size": batch_size}
-    log = max(steps // 8, 1) if verbose else 0
-    base = train_flow_policy(ds, norm, "naive", steps, seed, config=config, batch_size=batch_size, log_every=log)
-    paths = {"naive": save_arm_checkpoint(out / _CKPT_FILES["naive"], base, norm, config, "naive", meta)}
-    if verbose:
-        print(f"base trained ({time.perf_counter() - t0:.0f} s)", flush=True)
-    for i, m in enumerate(("train_hard", "train_soft")):
-        ft = train_flow_policy(ds, norm, m, finetune_steps, seed + 1 + i, config=config, init=base,
-                               batch_size=batch_size,
-                               log_every=max(finetune_steps // 4, 1) if verbose else 0)
-        paths[m] = save_arm_checkpoint(out / _CKPT_FILES[m], ft, norm, config, m,
-                                       {**meta, "finetuned_from": "base"})
+    if demos is None:
+        demo_path = out / "demos.npz"
+        info = generate_demos(episodes, seed, noise_std, str(demo_path))
+        data = load_demos(str(demo_path))
+        demo_path.unlink()  # reproducible from (episodes, seed, noise_std); not shipped
         if verbose:
-            print(f"{m} fine-tuned ({time.perf_counter() - t0:.0f} s)", flush=True)
+            print(f"demos: {info['episodes']} episodes, {info['steps']} steps, expert success "
+                  f"{info['success_rate']:.2f} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    else:
+        if not isinstance(demos, (str, os.PathLike)) or not os.path.isfile(demos):
+            raise ValueError(f"demos must name an existing demo .npz file or be None, got {demos!r}")
+        data = load_demos(os.fspath(demos))
+        got = (len(data["episode_start"]), int(data["seed"]), float(data["noise_std"]))
+        if got[0] != episodes or got[1] != seed or not math.isclose(got[2], noise_std, rel_tol=1e-6):
+            raise ValueError(f"demos file {os.fspath(demos)!r} holds (episodes, seed, noise_std) = {got}, "
+                             f"expected {(episodes, seed, noise_std)}")
+    ds = chunk_dataset(data, config.horizon)
+    norm = Normalizer.fit(policy_features(data["obs"]), data["action"])
+    meta = {"episodes": episodes, "seed": seed, "noise_std": noise_std, "steps": steps,
+            "finetune_steps": finetune_steps, "batch_size": batch_size, "learning_rate": learning_rate}
+
+    def report(name, losses):
+        if verbose:
+            k = max(len(losses) // 10, 1)
+            print(f"{name}: loss {float(np.mean(losses[:k])):.4f} -> {float(np.mean(losses[-k:])):.4f} "
+                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
+
+    base, losses, tc = train_flow_policy(ds, norm, "naive", steps, seed, config=config, batch_size=batch_size,
+                                         learning_rate=learning_rate, progress=verbose)
+    paths = {"naive": save_arm_checkpoint(out / _CKPT_FILES["naive"], base, norm, config, "naive", meta, tc)}
+    report("base", losses)
+    for i, m in enumerate(("train_hard", "train_soft")):
+        # Fine-tuning starts from trained weights: a lower peak rate keeps it from undoing the base.
+        ft, losses, tc = train_flow_policy(ds, norm, m, finetune_steps, seed + 1 + i, config=config, init=base,
+                                           batch_size=batch_size, learning_rate=learning_rate / 3,
+                                           progress=verbose)
+        paths[m] = save_arm_checkpoint(out / _CKPT_FILES[m], ft, norm, config, m,
+                                       {**meta, "finetuned_from": "base"}, tc)
+        report(m, losses)
     return paths
