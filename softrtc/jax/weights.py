@@ -16,6 +16,7 @@ Instead of slicing (which needs static bounds) every function computes all
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -203,6 +204,15 @@ def weight_table(H: int, window=None, s=None) -> jax.Array:
     """
     H = v.check_int("H", H, 1)
     window = check_window(H, SoftWindow() if window is None else window)
+    if s is not None:
+        s = v.int_value("s", s, 1, H)
+    return _weight_table(H, window, s)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _weight_table(H, window, s):
+    # Jitted so a table costs one compilation per (H, names) rather than an
+    # eager vmap trace per call; d, s and the rule's numbers stay traced.
     return jax.vmap(lambda d: soft_weights(H, d, window, s))(jnp.arange(H + 1, dtype=jnp.int32))
 
 

@@ -9,6 +9,7 @@ The JAX samplers return only the chunk, so sampler cases check the chunk
 
 from __future__ import annotations
 
+import functools
 import importlib
 import json
 import importlib.util
@@ -46,14 +47,13 @@ class JaxAdapter:
     def weights(self, H, d, window, s):
         # One weight_table call per (H, window, s) serves every d: the vectors sweep
         # d = 0 .. H for each window, and per-call dispatch would dominate the run ([CF-17]).
-        # Arguments are validated by soft_weights' own checks through weight_table and below.
         w = _mod("weights")
-        win = w.from_reference(window_from_dict(window))
         if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or not 0 <= d <= H:
-            return w.soft_weights(H, d, win, s)  # raises the JAX twin's own ValueError
+            # raises the JAX twin's own ValueError
+            return w.soft_weights(H, d, w.from_reference(window_from_dict(window)), s)
         key = (H, json.dumps(window, sort_keys=True), s)
         if key not in self._tables:
-            self._tables[key] = np.asarray(w.weight_table(H, win, s))
+            self._tables[key] = np.asarray(w.weight_table(H, w.from_reference(window_from_dict(window)), s))
         return self._tables[key][d]
 
     def hard_weights(self, H, d):
@@ -92,18 +92,31 @@ class JaxAdapter:
         x = np.asarray(x)
         return x.reshape(np.shape(noise)) if x.ndim == 3 and x.shape[0] == 1 else x
 
-    # The JAX samplers act on batches [B, ...]; a case is a batch of one.
-    def naive_sample(self, field, obs, noise, T):
-        out = _mod("sampler").naive_sample(self._field(field), _b(obs), _b(noise), T)
+    # The JAX samplers act on batches [B, ...]; a case is a batch of one. Each call
+    # is validated on the host first (so invalid cases raise the twin's own
+    # ValueError) and then runs jitted, as a user would run it: eager JAX
+    # dispatches every op (and re-traces every VJP) one by one.
+    def _sample(self, kind, field, obs, noise, prior, w, T, max_guidance=None):
+        sampler = _mod("sampler")
+        if kind == "guided":
+            _mod("guidance").guidance_weight(0.0, max_guidance)  # validates max_guidance
+        args = sampler.check_batch(_b(obs), _b(noise), None if prior is None else _b(prior),
+                                   None if w is None else _b(w), T)
+        self._field(field)  # validates the field parameters
+        fn = _jitted_sampler(kind)
+        params = {k: np.asarray(v, np.float32) for k, v in field.items()}
+        out = fn(params, args[0], args[1], args[2], args[3], args[4],
+                 None if max_guidance is None else float(max_guidance))
         return self._unbatch(out, noise), None
+
+    def naive_sample(self, field, obs, noise, T):
+        return self._sample("naive", field, obs, noise, None, None, T)
 
     def rtc_sample(self, field, obs, noise, prior, w, T):
-        out = _mod("sampler").rtc_sample(self._field(field), _b(obs), _b(noise), _b(prior), _b(w), T)
-        return self._unbatch(out, noise), None
+        return self._sample("rtc", field, obs, noise, prior, w, T)
 
     def guided_sample(self, field, obs, noise, prior, w, T, max_guidance):
-        out = _mod("guidance").guided_sample(self._field(field), _b(obs), _b(noise), _b(prior), _b(w), T, max_guidance)
-        return self._unbatch(out, noise), None
+        return self._sample("guided", field, obs, noise, prior, w, T, max_guidance)
 
     def guidance_weights(self, H, s, d, variant):
         return _mod("guidance").guidance_prefix_weights(H, s, d, variant)
@@ -115,7 +128,12 @@ class JaxAdapter:
         return _mod("executor").shift_prior(prev, s)
 
     def execute_chunks(self, chunks, delays, s):
-        return _mod("executor").execute_chunks(chunks, delays, s)
+        ex = _mod("executor")
+        ch = np.asarray(chunks)
+        if ch.ndim != 3 or not np.all(np.isfinite(ch)):
+            return ex.execute_chunks(chunks, delays, s)  # raises the twin's own ValueError
+        ds = ex.check_delays(ch.shape[1], s, delays)
+        return _jitted_execute()(ch.astype(np.float32), ds.astype(np.int32), s)
 
     def difference_norm(self, actions, order):
         return _mod("metrics").difference_norm(actions, order)
@@ -135,6 +153,28 @@ class JaxAdapter:
 
     def standard_error(self, values):
         return _mod("metrics").standard_error(values)
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_sampler(kind: str):
+    import jax
+
+    def run(params, obs, noise, prior, w, T, max_guidance):
+        field = _mod("velocity").ReferenceVelocityField(params)
+        if kind == "naive":
+            return _mod("sampler").naive_sample(field, obs, noise, T)
+        if kind == "rtc":
+            return _mod("sampler").rtc_sample(field, obs, noise, prior, w, T)
+        return _mod("guidance").guided_sample(field, obs, noise, prior, w, T, max_guidance)
+
+    return jax.jit(run, static_argnums=(5, 6))
+
+
+@functools.lru_cache(maxsize=None)
+def _jitted_execute():
+    import jax
+
+    return jax.jit(lambda ch, ds, s: _mod("executor").execute_chunks(ch, ds, s), static_argnums=(2,))
 
 
 def _method_weights(self, method, H, s, d, window):
