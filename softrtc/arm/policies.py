@@ -511,7 +511,7 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
     the file ``demos`` written by it with those arguments (checked against its
     stored seed and noise level). The base is trained for ``steps`` steps with
     seed ``seed``; each fine-tune starts from the base and runs
-    ``finetune_steps`` (default ``steps // 4``) with seed ``seed + 1`` (hard)
+    ``finetune_steps`` (``None``: ``steps // 4``) with seed ``seed + 1`` (hard)
     and ``seed + 2`` (soft), learning rate ``learning_rate / 3``. Training is
     :func:`train_flow_policy` ([T-9]). Returns ``{method: path}``.
     """
