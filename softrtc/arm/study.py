@@ -66,7 +66,9 @@ def format_table(rows: dict) -> str:
         raise ValueError("rows must be a non-empty dict {method: summary row}")
 
     def pm(r, k, fmt):
-        return f"{r[k]:{fmt}} ± {r[k + '_se']:{fmt}}"
+        # A single trial has no standard error ([M-6] needs n >= 2): print a dash, not nan.
+        se = r[k + "_se"]
+        return f"{r[k]:{fmt}} ± " + ("-" if se != se else f"{se:{fmt}}")
 
     lines = [[*_COLUMNS]]
     for m, r in rows.items():
