@@ -130,3 +130,33 @@ def test_cli_options(capsys):
     bad = parser.parse_args(["bench", "runtime", "--delay", "7"])
     assert jax_cli.run_runtime(bad) == 2
     assert "delay" in capsys.readouterr().err
+
+
+def test_delay_rows_match_traced_delay_tables():
+    """B-3, B-7, S-6: a host-picked per-delay row gives the chunk of the traced-delay table path."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from flax import nnx
+
+    from softrtc.jax import methods as JM
+    from softrtc.jax.policy import FlowPolicy, PolicyConfig
+
+    pol = FlowPolicy(obs_dim=5, action_dim=2, config=PolicyConfig(channel_dim=16, channel_hidden_dim=32,
+                     token_hidden_dim=8, num_layers=1, action_chunk_size=8), rngs=nnx.Rngs(0))
+    key = jax.random.PRNGKey(1)
+    obs, noise, prior = (jax.random.normal(k, s) for k, s in
+                         zip(jax.random.split(key, 3), [(2, 5), (2, 8, 2), (2, 8, 2)]))
+    for method in ("train_soft", "inference_soft", "naive"):
+        tables = JM.method_tables(method, pol, 8, 4, 3)
+        rows = JM.delay_rows(tables)
+        assert len(rows) == 5
+        f = jax.jit(lambda row: JM.generate_chunk_from_row(method, pol, obs, noise, prior, 3, row))
+        for d in range(5):
+            a = f(rows[d])
+            b = JM.generate_chunk_conditioned(method, pol, obs, noise, prior, 4, jnp.int32(d), 3, tables=tables)
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
+        assert f._cache_size() == 1
+    import pytest
+    with pytest.raises(ValueError, match="row must be"):
+        JM.generate_chunk_from_row("train_soft", pol, obs, noise, prior, 3, {"weights": 0})

@@ -30,7 +30,7 @@ import numpy as np
 from softrtc.reference._validate import check_choice, check_int
 
 from .endpoints import delay_scaled
-from .methods import generate_chunk, generate_chunk_conditioned, method_tables
+from .methods import delay_rows, generate_chunk, generate_chunk_from_row, method_tables
 from .policy import FlowPolicy, PolicyConfig
 from .training import TrainConfig, make_train_step
 from .weights import SoftWindow
@@ -216,6 +216,10 @@ class _Row:
     tables: Any
     table_seconds: float
 
+    def tables_for(self, d: int):
+        """What ``fn`` takes for delay ``d``: the fast path's per-delay row, looked up on the host ([B-3])."""
+        return self.tables[d] if self.path == "fast" else self.tables
+
 
 def _params(policy: FlowPolicy):
     """(graphdef, treedef, leaves): the state is passed to jitted functions as a flat tuple of arrays.
@@ -230,10 +234,12 @@ def _params(policy: FlowPolicy):
 
 
 def _fast_fn(graphdef, treedef, method, window, s, T):
-    def chunk(leaves, tables, obs, noise, prior, d):
+    # ``row`` is delay_rows(method_tables(...))[d], picked on the host: the delay
+    # selects an input of fixed shape, so one compilation serves every delay.
+    def chunk(leaves, row, obs, noise, prior, d):
         policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model = _Encoded(policy, policy.encode_obs(obs))
-        return generate_chunk_conditioned(method, model, obs, noise, prior, s, d, T, window, tables=tables)
+        return generate_chunk_from_row(method, model, obs, noise, prior, T, row)
     return jax.jit(chunk)
 
 
@@ -273,7 +279,7 @@ def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row
         window = _window(wspec)
         if path == "fast":
             t0 = time.perf_counter()
-            tables = jax.block_until_ready(method_tables(method, policy, H, s, T, window))
+            tables = jax.block_until_ready(delay_rows(method_tables(method, policy, H, s, T, window)))
             secs = time.perf_counter() - t0
             fn = _fast_fn(graphdef, treedef, method, window, s, T)
         else:
@@ -299,7 +305,7 @@ def _agreement(rows, reference: dict, state, inputs, delays) -> dict:
             continue
         worst, ok = 0.0, True
         for d in delays:
-            a = np.asarray(row.fn(state, row.tables, obs, noise, prior, d))
+            a = np.asarray(row.fn(state, row.tables_for(d), obs, noise, prior, d))
             b = np.asarray(reference[row.name](state, None, obs, noise, prior, d))
             worst = max(worst, float(np.max(np.abs(a - b))))
             ok = ok and bool(np.all(np.abs(a - b) <= ATOL + RTOL * np.abs(b)))
@@ -399,7 +405,8 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
         result["agreement"][str(B)] = _agreement(rows, reference, state, sets[0], delays)
 
         def call(row):
-            return lambda i: row.fn(state, row.tables, *sets[i % len(sets)], delays[i % len(delays)])
+            return lambda i: row.fn(state, row.tables_for(delays[i % len(delays)]), *sets[i % len(sets)],
+                                    delays[i % len(delays)])
 
         say(f"batch {B}: timing {len(rows)} rows x {config.calls} calls")
         times = _time_round_robin({k: call(r) for k, r in zip(keys, rows)}, config.calls, config.warmup)

@@ -122,6 +122,53 @@ def method_tables(method: str, model, H: int, s: int, num_steps: int, window=Non
     return {"weights": w, "cond": naive_conditioning(model, num_steps)}
 
 
+def delay_rows(tables: dict) -> tuple:
+    """Split :func:`method_tables` into one row per delay: ``rows[d] = {"weights": [H], "cond": ...}`` ([S-6]).
+
+    A caller that knows the delay on the host (a real-time runtime measures it)
+    picks ``rows[d]`` with a Python index and passes it to a jitted
+    :func:`generate_chunk_from_row`; every row has the same shapes, so one
+    compilation serves every delay. This avoids gathering the conditioning of
+    delay ``d`` from the ``[D, T, ...]`` table inside the compiled call, which
+    XLA on CPU does as a copy that costs more than the blend itself at batch 1.
+    """
+    if not isinstance(tables, dict) or set(tables) != {"weights", "cond"}:
+        raise ValueError("tables must be the dict returned by method_tables (keys 'weights', 'cond')")
+    w = tables["weights"]
+    D = int(w.shape[0])
+    rows = []
+    for d in range(D):
+        cond = select_conditioning(tables["cond"], jnp.int32(d)) if _is_delay_table(tables, D) else tables["cond"]
+        rows.append({"weights": w[d], "cond": cond})
+    return tuple(rows)
+
+
+def _is_delay_table(tables: dict, D: int) -> bool:
+    # Training-time tables carry a leading delay axis [D, T, ...]; naive / guided ones start with T.
+    leaf = jax.tree_util.tree_leaves(tables["cond"])[0]
+    return leaf.ndim == 5 and leaf.shape[0] == D
+
+
+def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: int, row: dict, *,
+                            unroll: bool = True) -> jax.Array:
+    """One chunk by ``method`` from a per-delay row of :func:`delay_rows` ([S-6]).
+
+    ``prior`` None means the first chunk: naive sampling, and the row must be
+    that of d = 0.
+    """
+    v.check_choice("method", method, METHODS)
+    if not isinstance(row, dict) or set(row) != {"weights", "cond"}:
+        raise ValueError("row must be an entry of delay_rows(...) (keys 'weights', 'cond')")
+    if prior is None or method == "naive":
+        cond = None if method.startswith("train_") else row["cond"]
+        return naive_sample_conditioned(model, obs, noise, num_steps, cond=cond, unroll=unroll)
+    if method.startswith("inference_"):
+        return guided_sample_conditioned(model, obs, noise, prior, row["weights"], num_steps, cond=row["cond"],
+                                         unroll=unroll)
+    return rtc_sample_conditioned(model, obs, noise, prior, row["weights"], num_steps, cond=row["cond"],
+                                  unroll=unroll)
+
+
 def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d, num_steps: int,
                                window=None, *, tables: dict | None = None, unroll: bool = True) -> jax.Array:
     """:func:`generate_chunk` on the fast path of ``model.apply_conditioned`` ([S-6]).
