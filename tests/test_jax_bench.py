@@ -149,7 +149,7 @@ def test_delay_rows_match_traced_delay_tables():
                          zip(jax.random.split(key, 3), [(2, 5), (2, 8, 2), (2, 8, 2)]))
     for method in ("train_soft", "inference_soft", "naive"):
         tables = JM.method_tables(method, pol, 8, 4, 3)
-        rows = JM.delay_rows(tables)
+        rows = JM.delay_rows(method, tables)
         assert len(rows) == 5
         f = jax.jit(lambda row: JM.generate_chunk_from_row(method, pol, obs, noise, prior, 3, row))
         for d in range(5):

@@ -234,7 +234,7 @@ def _params(policy: FlowPolicy):
 
 
 def _fast_fn(graphdef, treedef, method, window, s, T):
-    # ``row`` is delay_rows(method_tables(...))[d], picked on the host: the delay
+    # ``row`` is delay_rows(method, method_tables(...))[d], picked on the host: the delay
     # selects an input of fixed shape, so one compilation serves every delay.
     def chunk(leaves, row, obs, noise, prior, d):
         policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
@@ -279,7 +279,7 @@ def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row
         window = _window(wspec)
         if path == "fast":
             t0 = time.perf_counter()
-            tables = jax.block_until_ready(delay_rows(method_tables(method, policy, H, s, T, window)))
+            tables = jax.block_until_ready(delay_rows(method, method_tables(method, policy, H, s, T, window)))
             secs = time.perf_counter() - t0
             fn = _fast_fn(graphdef, treedef, method, window, s, T)
         else:

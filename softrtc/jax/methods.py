@@ -122,7 +122,7 @@ def method_tables(method: str, model, H: int, s: int, num_steps: int, window=Non
     return {"weights": w, "cond": naive_conditioning(model, num_steps)}
 
 
-def delay_rows(tables: dict) -> tuple:
+def delay_rows(method: str, tables: dict) -> tuple:
     """Split :func:`method_tables` into one row per delay: ``rows[d] = {"weights": [H], "cond": ...}`` ([S-6]).
 
     A caller that knows the delay on the host (a real-time runtime measures it)
@@ -132,21 +132,15 @@ def delay_rows(tables: dict) -> tuple:
     delay ``d`` from the ``[D, T, ...]`` table inside the compiled call, which
     XLA on CPU does as a copy that costs more than the blend itself at batch 1.
     """
+    v.check_choice("method", method, METHODS)
     if not isinstance(tables, dict) or set(tables) != {"weights", "cond"}:
         raise ValueError("tables must be the dict returned by method_tables (keys 'weights', 'cond')")
     w = tables["weights"]
-    D = int(w.shape[0])
-    rows = []
-    for d in range(D):
-        cond = select_conditioning(tables["cond"], jnp.int32(d)) if _is_delay_table(tables, D) else tables["cond"]
-        rows.append({"weights": w[d], "cond": cond})
-    return tuple(rows)
-
-
-def _is_delay_table(tables: dict, D: int) -> bool:
-    # Training-time tables carry a leading delay axis [D, T, ...]; naive / guided ones start with T.
-    leaf = jax.tree_util.tree_leaves(tables["cond"])[0]
-    return leaf.ndim == 5 and leaf.shape[0] == D
+    # Only training-time tables carry a delay axis; naive and guided samplers share one conditioning.
+    per_delay = method.startswith("train_")
+    return tuple({"weights": w[d],
+                  "cond": select_conditioning(tables["cond"], jnp.int32(d)) if per_delay else tables["cond"]}
+                 for d in range(int(w.shape[0])))
 
 
 def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: int, row: dict, *,
