@@ -115,3 +115,19 @@ def int_array(name: str, value, shape: tuple | None = None, lo: int | None = Non
             want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
             raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
     return value
+
+
+def select_by_code(code, branches):
+    """``branches[code]()`` for a Python int code; for a traced code, every branch selected by value.
+
+    Lets one compiled function serve every named variant (schedule,
+    parametrization, rule kind) when the name is passed as a traced integer
+    code, while a static name still evaluates only its own branch.
+    """
+    if isinstance(code, (int, np.integer)) and not isinstance(code, bool):
+        return branches[int(code)]()
+    values = [b() for b in branches]
+    out = values[-1]
+    for i in range(len(values) - 2, -1, -1):
+        out = jnp.where(code == i, values[i], out)
+    return out

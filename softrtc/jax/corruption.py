@@ -17,8 +17,29 @@ def token_times(weights, tau) -> jax.Array:
     w = v.array("weights", weights, lo=0.0, hi=1.0)
     if w.ndim < 1:
         raise ValueError(f"weights must have shape [..., H], got {list(w.shape)}")
+    return _token_times(w, _tau(w, tau))
+
+
+def _tau(w, tau):
     tau = v.array("tau", tau, lo=0.0, hi=1.0)
+    try:
+        jnp.broadcast_shapes(tau.shape + (1,), w.shape)
+    except ValueError:
+        raise ValueError(f"tau must have the batch shape of the weights {list(w.shape[:-1])}, "
+                         f"got {list(tau.shape)}") from None
+    return tau
+
+
+@jax.jit
+def _token_times(w, tau):
     return w + (1.0 - w) * tau[..., None]
+
+
+def _corrupt(a, n, w, tau):
+    # Not jitted as a whole: [C-3] compares with the interpolant evaluated op by op,
+    # and a fused kernel may contract a * b + c into one rounding.
+    tj = _token_times(w, tau)
+    return tj[..., None] * a + (1.0 - tj[..., None]) * n, tj
 
 
 def corrupt(actions, noise, weights, tau) -> tuple[jax.Array, jax.Array]:
@@ -34,6 +55,4 @@ def corrupt(actions, noise, weights, tau) -> tuple[jax.Array, jax.Array]:
     w = v.array("weights", weights, lo=0.0, hi=1.0)
     if w.shape != a.shape[:-1]:
         raise ValueError(f"weights must have shape {list(a.shape[:-1])}, got {list(w.shape)}")
-    tj = token_times(w, tau)
-    x = tj[..., None] * a + (1.0 - tj[..., None]) * n
-    return x, tj
+    return _corrupt(a, n, w, _tau(w, tau))

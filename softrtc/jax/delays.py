@@ -51,6 +51,11 @@ def delay_cdf(probs) -> jax.Array:
         raise ValueError("probs must be a non-empty table summing to 1, got an empty table")
     if not v.is_traced(p) and abs(float(jnp.sum(p)) - 1.0) > 1e-6:
         raise ValueError(f"probs must be a non-empty table summing to 1, got sum {float(jnp.sum(p))}")
+    return _cdf(p)
+
+
+@jax.jit
+def _cdf(p):
     return jnp.cumsum(p).at[-1].set(1.0)
 
 
@@ -64,6 +69,11 @@ def sample_delay(probs, d_min, u) -> jax.Array:
     u = v.array("u", u, lo=0.0)
     if not v.is_traced(u) and u.size and float(jnp.max(u)) >= 1.0:
         raise ValueError(f"u must lie in [0, 1), got max {float(jnp.max(u))}")
+    return _inverse_cdf(c, d_min, u)
+
+
+@jax.jit
+def _inverse_cdf(c, d_min, u):
     return d_min + jnp.sum(c <= u[..., None], axis=-1).astype(jnp.int32)
 
 

@@ -102,12 +102,22 @@ def endpoint(rule: EndpointRule, d) -> jax.Array:
     """
     rule = from_reference(rule)
     d = v.int_value("d", d, 0, MAX_WINDOW)
-    if rule.kind == "delay_scaled":
+    return endpoint_by_code(RULES.index(rule.kind), rule.lam, rule.h_max, rule.length, d)
+
+
+def endpoint_by_code(kind, lam, h_max, length, d) -> jax.Array:
+    """e(d) for the rule ``RULES[kind]`` ([E-1]..[E-6]); the kind code may be traced.
+
+    A Python int ``kind`` evaluates only its own rule; a traced one evaluates
+    all four and selects, so one compiled function serves every rule kind
+    (used by the weight tables, [W-7]). No argument checks: callers check.
+    """
+    d = jnp.asarray(d, jnp.int32)
+    rules = {
         # ceil(lam * 0) = 0 already gives [E-6]; the product is exact for lam in (1/4)Z.
-        raw = jnp.ceil(rule.lam * d.astype(jnp.float32)).astype(jnp.int32)
-        return jnp.minimum(raw, rule.h_max)
-    if rule.kind == "offset":
-        return jnp.where(d == 0, 0, jnp.minimum(d + rule.length, rule.h_max))
-    if rule.kind == "fixed":
-        return jnp.where(d == 0, 0, rule.length)
-    return d
+        "delay_scaled": lambda: jnp.minimum(jnp.ceil(lam * d.astype(jnp.float32)).astype(jnp.int32), h_max),
+        "fixed": lambda: jnp.where(d == 0, 0, length).astype(jnp.int32),
+        "offset": lambda: jnp.where(d == 0, 0, jnp.minimum(d + length, h_max)).astype(jnp.int32),
+        "hard": lambda: d,
+    }
+    return v.select_by_code(kind, [rules[name] for name in RULES])

@@ -47,6 +47,13 @@ def shift_prior(prev_chunk, s) -> jax.Array:
         raise ValueError(f"prev_chunk must have shape [..., H, A], got {list(prev.shape)}")
     H = prev.shape[-2]
     s = v.int_value("s", s, 1, H)
+    return _shift(prev, s)
+
+
+@jax.jit
+def _shift(prev, s):
+    # Checked by shift_prior(); jitted so an eager call is one dispatch, not one per op.
+    H = prev.shape[-2]
     j = jnp.arange(H)
     src = jnp.take(prev, jnp.minimum(j + s, H - 1), axis=-2)
     return jnp.where((j < H - s)[:, None], src, 0.0)

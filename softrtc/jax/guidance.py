@@ -19,7 +19,7 @@ from softrtc.reference import guidance as _ref
 
 from . import _validate as v
 from .sampler import _at, _runtime, _check_fn, _check_model, _loop, check_batch, euler_times, naive_conditioning
-from .weights import _prefix
+from .weights import PARAMETRIZATIONS, SCHEDULES, _prefix_jit
 
 MAX_GUIDANCE = _ref.MAX_GUIDANCE
 GUIDANCE_SCHEDULES = _ref.GUIDANCE_SCHEDULES
@@ -36,7 +36,8 @@ def guidance_prefix_weights(H: int, s, d, variant: str) -> jax.Array:
     v.check_choice("variant", variant, tuple(GUIDANCE_SCHEDULES))
     s = v.int_value("s", s, 1, H)
     d = v.int_value("d", d, 0, H - int(s) if not v.is_traced(s) else H)
-    return _prefix(H, d, H - s, GUIDANCE_SCHEDULES[variant], "rtc")
+    return _prefix_jit(H, d, H - s, jnp.int32(SCHEDULES.index(GUIDANCE_SCHEDULES[variant])),
+                       jnp.int32(PARAMETRIZATIONS.index("rtc")))
 
 
 def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:

@@ -8,6 +8,8 @@ is clamped (then the loss is exactly 0, [L-2]).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -17,25 +19,39 @@ from .corruption import corrupt
 ETA = 1e-8
 
 
-def token_errors(pred, actions, noise) -> jax.Array:
-    """l_j = sum_a (v - (A - eps))^2 ([L-1]); [..., H, A] -> [..., H]."""
+def _check_triple(pred, actions, noise):
     p = v.array("pred", pred)
     if p.ndim < 2:
         raise ValueError(f"pred must have shape [..., H, A], got {list(p.shape)}")
     a = v.array("actions", actions, shape=p.shape)
     n = v.array("noise", noise, shape=p.shape)
+    return p, a, n
+
+
+def token_errors(pred, actions, noise) -> jax.Array:
+    """l_j = sum_a (v - (A - eps))^2 ([L-1]); [..., H, A] -> [..., H]."""
+    return _token_errors(*_check_triple(pred, actions, noise))
+
+
+def _token_errors(p, a, n):
     return jnp.sum((p - (a - n)) ** 2, axis=-1)
 
 
 def flow_matching_loss(pred, actions, noise, weights, eta=ETA) -> jax.Array:
     """Per-example loss sum_j (1 - w_j) l_j / (sum_j (1 - w_j) + eta) ([L-2], [L-4]); shape [...]."""
-    l = token_errors(pred, actions, noise)
+    p, a, n = _check_triple(pred, actions, noise)
     w = v.array("weights", weights, lo=0.0, hi=1.0)
-    if w.shape != l.shape:
-        raise ValueError(f"weights must have shape {list(l.shape)}, got {list(w.shape)}")
+    if w.shape != p.shape[:-1]:
+        raise ValueError(f"weights must have shape {list(p.shape[:-1])}, got {list(w.shape)}")
     eta = v.real_value("eta", eta, 0.0, 1.0, lo_open=True)
+    return _weighted(p, a, n, w, eta)
+
+
+@jax.jit
+def _weighted(pred, actions, noise, w, eta):
+    # Checked by the callers; jitted so an eager call is one dispatch, not one per op.
     m = 1.0 - w
-    return jnp.sum(m * l, axis=-1) / (jnp.sum(m, axis=-1) + eta)
+    return jnp.sum(m * _token_errors(pred, actions, noise), axis=-1) / (jnp.sum(m, axis=-1) + eta)
 
 
 def batch_loss(preds, actions, noise, weights, eta=ETA) -> jax.Array:
@@ -43,7 +59,12 @@ def batch_loss(preds, actions, noise, weights, eta=ETA) -> jax.Array:
     p = v.array("preds", preds, ndim=3)
     if p.shape[0] == 0:
         raise ValueError("preds must have batch size >= 1, got 0")
-    return jnp.mean(flow_matching_loss(p, actions, noise, weights, eta))
+    return _mean(flow_matching_loss(p, actions, noise, weights, eta))
+
+
+@jax.jit
+def _mean(x):
+    return jnp.mean(x)
 
 
 def rtc_loss(velocity_fn, obs, actions, noise, weights, tau, eta=ETA) -> jax.Array:

@@ -8,6 +8,8 @@ difference order ``k`` is static.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -49,10 +51,17 @@ def difference_norm(actions, order: int, length=None) -> jax.Array:
     """
     a = _actions(actions)
     k = v.check_int("order", order, 1, 16)
-    norms = jnp.linalg.norm(finite_differences(a, k), axis=-1)
+    if a.shape[0] <= k:
+        raise ValueError(f"actions must have more than order={k} steps, got {a.shape[0]}")
     n = _length(length, a.shape[0], k)
-    if n is None:
-        return jnp.mean(norms)
+    return _difference_norm(a, k, a.shape[0] if n is None else n)
+
+
+# The public functions check on the host and call jitted cores: eager JAX would
+# compile every primitive separately for each new shape.
+@functools.partial(jax.jit, static_argnums=(1,))
+def _difference_norm(a, k, n):
+    norms = jnp.linalg.norm(jnp.diff(a, n=k, axis=0), axis=-1)
     mask = jnp.arange(norms.shape[0]) < n - k
     return jnp.sum(jnp.where(mask, norms, 0.0)) / (n - k)
 
@@ -93,6 +102,11 @@ def boundary_jump(actions, chunk_index, length=None) -> jax.Array:
         mask = mask & (jnp.arange(a.shape[0]) < v.int_value("length", length, 1, a.shape[0]))
     if not v.is_traced(mask) and not bool(jnp.any(mask)):
         raise ValueError("chunk_index has no chunk switch; the boundary jump needs at least one")
+    return _boundary_jump(a, mask)
+
+
+@jax.jit
+def _boundary_jump(a, mask):
     step = jnp.linalg.norm(a - jnp.roll(a, 1, axis=0), axis=-1)
     return jnp.sum(jnp.where(mask, step, 0.0)) / jnp.sum(mask)
 
@@ -110,6 +124,11 @@ def standard_error(values) -> jax.Array:
     x = v.array("values", values, ndim=1)
     if x.shape[0] < 2:
         raise ValueError(f"values must hold at least 2 entries, got {x.shape[0]}")
+    return _standard_error(x)
+
+
+@jax.jit
+def _standard_error(x):
     return jnp.std(x, ddof=1) / jnp.sqrt(x.shape[0])
 
 
@@ -126,6 +145,11 @@ def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -
     if not v.is_traced(idx) and idx.size and (int(idx.min()) < 0 or int(idx.max()) >= x.shape[0]):
         raise ValueError(f"indices must be an integer array [B, {x.shape[0]}] with entries in [0, {x.shape[0] - 1}]")
     c = v.check_real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
+    return _bootstrap(x, idx, c)
+
+
+@functools.partial(jax.jit, static_argnums=(2,))
+def _bootstrap(x, idx, c):
     means = jnp.mean(x[idx], axis=1)
     q = jnp.quantile(means, jnp.array([(1.0 - c) / 2.0, 1.0 - (1.0 - c) / 2.0]))
     return q[0], q[1]

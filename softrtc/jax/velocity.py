@@ -107,13 +107,24 @@ class ReferenceVelocityField:
         """Velocity [..., H, A] at x [..., H, A] with per-token time t [..., H] ([F-1])."""
         obs, x = self._check(obs, x)
         t = v.array("t", t, shape=x.shape[:-1], lo=0.0, hi=1.0)
-        return self.apply_conditioned(obs, x, self.time_conditioning(t))
+        return _velocity(self, obs, x, t)
 
     def vjp(self, obs, x, t, cotangent) -> jax.Array:
         """Hand-written (dv/dx)^T cotangent, shape of x ([F-2])."""
         obs, x = self._check(obs, x)
         t = v.array("t", t, shape=x.shape[:-1], lo=0.0, hi=1.0)
         g = v.array("cotangent", cotangent, shape=x.shape)
-        h = self._hidden(obs, x, self.time_conditioning(t))
-        dh = (g.reshape(g.shape[:-2] + (-1,)) @ self.params["W2"].T) * (1.0 - h * h)
-        return (dh @ self.params["W1"].T).reshape(x.shape)
+        return _vjp(self, obs, x, t, g)
+
+
+# Checked by the methods above; jitted so an eager call is one dispatch, not one per op.
+@jax.jit
+def _velocity(field, obs, x, t):
+    return field.apply_conditioned(obs, x, field.time_conditioning(t))
+
+
+@jax.jit
+def _vjp(field, obs, x, t, g):
+    h = field._hidden(obs, x, field.time_conditioning(t))
+    dh = (g.reshape(g.shape[:-2] + (-1,)) @ field.params["W2"].T) * (1.0 - h * h)
+    return (dh @ field.params["W1"].T).reshape(x.shape)

@@ -3,8 +3,9 @@
 Shapes are static (the horizon ``H``); the delay ``d``, the endpoint ``e``,
 the execute horizon ``s`` and the window's rule parameters may be traced, so
 one compiled function serves every delay and every window of a given
-(rule kind, schedule, parametrization, overflow) ([W-7]). The names of the
-schedule, parametrization and overflow are static Python strings.
+horizon ``H``, whatever the rule kind, schedule, parametrization and
+overflow ([W-7]): inside, the names travel as traced integer codes. In the
+public API they are Python strings (static fields of :class:`SoftWindow`).
 
 Instead of slicing (which needs static bounds) every function computes all
 ``H`` tokens and selects the committed prefix / window / tail with masks.
@@ -32,6 +33,18 @@ PARAMETRIZATIONS = _ref.PARAMETRIZATIONS
 OVERFLOWS = _ref.OVERFLOWS
 
 
+def _schedule(code, x):
+    u = 1.0 - x
+    by_name = {
+        "zeros": lambda: jnp.zeros_like(x),
+        "ones": lambda: jnp.ones_like(x),
+        "linear": lambda: u,
+        # expm1(1) rather than e - 1 so that g(0) is exactly 1 ([W-3]).
+        "exp": lambda: u * jnp.expm1(u) / jnp.expm1(jnp.ones((), u.dtype)),
+    }
+    return v.select_by_code(code, [by_name[n] for n in SCHEDULES])
+
+
 def schedule_value(schedule: str, x) -> jax.Array:
     """Window schedule g(x) for x in [0, 1], any shape ([W-3]).
 
@@ -40,15 +53,7 @@ def schedule_value(schedule: str, x) -> jax.Array:
     """
     v.check_choice("schedule", schedule, SCHEDULES)
     x = v.array("x", x, lo=0.0, hi=1.0)
-    if schedule == "zeros":
-        return jnp.zeros_like(x)
-    if schedule == "ones":
-        return jnp.ones_like(x)
-    u = 1.0 - x
-    if schedule == "linear":
-        return u
-    # expm1(1) rather than e - 1 so that g(0) is exactly 1 ([W-3]).
-    return u * jnp.expm1(u) / jnp.expm1(jnp.ones((), u.dtype))
+    return _schedule(SCHEDULES.index(schedule), x)
 
 
 def window_positions(H: int, d, e, parametrization: str = "rtc") -> jax.Array:
@@ -63,31 +68,42 @@ def window_positions(H: int, d, e, parametrization: str = "rtc") -> jax.Array:
     v.check_choice("parametrization", parametrization, PARAMETRIZATIONS)
     d = v.int_value("d", d, 0, H)
     e = v.int_value("e", e, 0, H)
-    return _positions(H, d, e, parametrization)
+    return _positions(H, d, e, PARAMETRIZATIONS.index(parametrization))
 
 
-def _positions(H, d, e, parametrization):
+# The private helpers below take the schedule, parametrization, overflow and
+# rule kind as integer codes (indices into SCHEDULES, ...). A Python int code
+# evaluates only its own variant; a traced code selects among all of them, so
+# the jitted entry points compile once per horizon H for every variant.
+
+def _positions(H, d, e, pcode):
     j = jnp.arange(H, dtype=jnp.float32)
-    df, ef = d.astype(jnp.float32), e.astype(jnp.float32)
-    if parametrization == "rtc":
-        x = (j - df + 1.0) / (ef - df + 1.0)
-    else:
+    df, ef = jnp.asarray(d).astype(jnp.float32), jnp.asarray(e).astype(jnp.float32)
+    by_name = {
+        "rtc": lambda: (j - df + 1.0) / (ef - df + 1.0),
         # An empty window (e = d) has no tokens; the max only avoids 0/0 in masked lanes.
-        x = (j - df) / jnp.maximum(ef - df, 1.0)
-    return jnp.clip(x, 0.0, 1.0)
+        "paper": lambda: (j - df) / jnp.maximum(ef - df, 1.0),
+    }
+    return jnp.clip(v.select_by_code(pcode, [by_name[n] for n in PARAMETRIZATIONS]), 0.0, 1.0)
 
 
-def _prefix(H, d, e, schedule, parametrization):
+def _prefix(H, d, e, scode, pcode):
     j = jnp.arange(H)
-    g = schedule_value(schedule, _positions(H, d, e, parametrization))
+    g = _schedule(scode, _positions(H, d, e, pcode))
     return jnp.where(j < d, 1.0, jnp.where(j < e, g, 0.0)).astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _prefix_jit(H, d, e, scode, pcode):
+    return _prefix(H, d, e, scode, pcode)
 
 
 def prefix_weights(H: int, d, e, schedule: str = "linear", parametrization: str = "rtc") -> jax.Array:
     """Weights [H]: 1 for j < d, g(x_j) for d <= j < e, 0 for j >= e ([W-1], [W-4], [W-5]).
 
     Requires 0 <= d <= e <= H (checked when concrete; traced ``d``/``e``
-    outside this range give undefined results). ``H`` and the names are static.
+    outside this range give undefined results). ``H`` and the names are static;
+    one compilation per ``H`` serves every delay, endpoint and variant.
     """
     H = v.check_int("H", H, 1)
     v.check_choice("schedule", schedule, SCHEDULES)
@@ -96,7 +112,8 @@ def prefix_weights(H: int, d, e, schedule: str = "linear", parametrization: str 
     e = v.int_value("e", e, 0, H)
     if not v.is_traced((d, e)) and int(e) < int(d):
         raise ValueError(f"e must be an integer in [{int(d)}, {H}] (e >= d), got {int(e)}")
-    return _prefix(H, d, e, schedule, parametrization)
+    return _prefix_jit(H, d, e, jnp.int32(SCHEDULES.index(schedule)),
+                       jnp.int32(PARAMETRIZATIONS.index(parametrization)))
 
 
 def effective_endpoint(H: int, d, e, s=None, overflow: str = "clip") -> jax.Array:
@@ -110,17 +127,20 @@ def effective_endpoint(H: int, d, e, s=None, overflow: str = "clip") -> jax.Arra
     v.check_choice("overflow", overflow, OVERFLOWS)
     d = v.int_value("d", d, 0, H)
     e = v.int_value("e", e, 0, H)
-    return _effective(H, d, e, s, overflow)
-
-
-def _effective(H, d, e, s, overflow):
-    e_star = jnp.maximum(e, d)
     if overflow == "clip":
         if s is None:
             raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
         s = v.int_value("s", s, 1, H)
-        e_star = jnp.maximum(d, jnp.minimum(e_star, H - s))
-    return e_star
+    return _effective(H, d, e, s, OVERFLOWS.index(overflow))
+
+
+def _effective(H, d, e, s, ocode):
+    e_star = jnp.maximum(e, d)
+    by_name = {
+        "clip": lambda: jnp.maximum(d, jnp.minimum(e_star, H - s)),
+        "zeros": lambda: e_star,
+    }
+    return v.select_by_code(ocode, [by_name[n] for n in OVERFLOWS])
 
 
 @jax.tree_util.register_dataclass
@@ -168,13 +188,39 @@ def check_window(H: int, window) -> SoftWindow:
     return window
 
 
+def _codes(window):
+    """(rule kind, schedule, parametrization, overflow) codes of a window."""
+    return (_ep.RULES.index(window.rule.kind), SCHEDULES.index(window.schedule),
+            PARAMETRIZATIONS.index(window.parametrization), OVERFLOWS.index(window.overflow))
+
+
+def _check_s(H, window, s):
+    if s is None:
+        if window.overflow == "clip":
+            raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
+        return jnp.int32(H)  # unused by overflow="zeros"
+    return v.int_value("s", s, 1, H)
+
+
+def _soft(H, d, kind, lam, h_max, length, scode, pcode, ocode, s):
+    e = _ep.endpoint_by_code(kind, lam, h_max, length, d)
+    # The hard rule's endpoint is d itself; every other rule is bounded by h_max <= H.
+    e = jnp.where(kind == _ep.RULES.index("hard"), jnp.minimum(e, H), e)
+    e_star = _effective(H, d, e, s, ocode)
+    return _prefix(H, d, e_star, scode, pcode)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _soft_jit(H, d, kind, lam, h_max, length, scode, pcode, ocode, s):
+    return _soft(H, d, kind, lam, h_max, length, scode, pcode, ocode, s)
+
+
 def soft_weights(H: int, d, window=None, s=None) -> jax.Array:
     """Soft RTC weights for delay d ([W-7]): prefix_weights(H, d, e*, g, parametrization).
 
     ``d`` in [0, H], ``s`` in [1, H] and the window's rule parameters may be
-    traced (one compilation per rule kind / schedule / parametrization /
-    overflow). Traced values outside their ranges give undefined results;
-    concrete ones are checked ([N-7]).
+    traced; one compilation per ``H`` serves every window. Traced values
+    outside their ranges give undefined results; concrete ones are checked ([N-7]).
 
     >>> soft_weights(8, 3, SoftWindow(), s=4).round(3).tolist()
     [1.0, 1.0, 1.0, 0.5, 0.0, 0.0, 0.0, 0.0]
@@ -182,11 +228,10 @@ def soft_weights(H: int, d, window=None, s=None) -> jax.Array:
     H = v.check_int("H", H, 1)
     window = check_window(H, SoftWindow() if window is None else window)
     d = v.int_value("d", d, 0, H)
-    e = endpoint(window.rule, d)
-    # The hard rule's endpoint is d itself; every other rule is bounded by h_max <= H.
-    e = jnp.minimum(e, H) if window.rule.kind == "hard" else e
-    e_star = _effective(H, d, e, s, window.overflow)
-    return _prefix(H, d, e_star, window.schedule, window.parametrization)
+    s = _check_s(H, window, s)
+    kind, scode, pcode, ocode = (jnp.int32(c) for c in _codes(window))
+    r = window.rule
+    return _soft_jit(H, d, kind, r.lam, r.h_max, r.length, scode, pcode, ocode, s)
 
 
 def hard_weights(H: int, d) -> jax.Array:
@@ -200,20 +245,21 @@ def weight_table(H: int, window=None, s=None) -> jax.Array:
     """Soft weights for every delay d = 0 .. H as a table [H + 1, H] ([W-7]).
 
     Index it with a traced delay (``table[d]``) inside a jitted sampler; the
-    table itself depends only on the window and ``s``.
+    table itself depends only on the window and ``s``. One compilation per
+    ``H`` serves every window and ``s``.
     """
     H = v.check_int("H", H, 1)
     window = check_window(H, SoftWindow() if window is None else window)
-    if s is not None:
-        s = v.int_value("s", s, 1, H)
-    return _weight_table(H, window, s)
+    s = _check_s(H, window, s)
+    kind, scode, pcode, ocode = (jnp.int32(c) for c in _codes(window))
+    r = window.rule
+    return _weight_table(H, kind, r.lam, r.h_max, r.length, scode, pcode, ocode, s)
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _weight_table(H, window, s):
-    # Jitted so a table costs one compilation per (H, names) rather than an
-    # eager vmap trace per call; d, s and the rule's numbers stay traced.
-    return jax.vmap(lambda d: soft_weights(H, d, window, s))(jnp.arange(H + 1, dtype=jnp.int32))
+def _weight_table(H, kind, lam, h_max, length, scode, pcode, ocode, s):
+    return jax.vmap(lambda d: _soft(H, d, kind, lam, h_max, length, scode, pcode, ocode, s))(
+        jnp.arange(H + 1, dtype=jnp.int32))
 
 
 def check_weights(name: str, w, H: int) -> jax.Array:
