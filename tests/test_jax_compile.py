@@ -113,3 +113,28 @@ def test_vmap_over_delays_and_windows():
             want = R.soft_weights(H, i, R.SoftWindow(R.delay_scaled(lams[i], 6)), S)
             np.testing.assert_allclose(got[i], want, atol=1e-6)
     assert count["n"] == 1
+
+
+def test_weight_table_compiles_once_per_horizon_for_every_variant():
+    """W-7, W-3, W-4, W-5, W-6, E-1: the eager weight_table / prefix_weights entry points compile
+    once per horizon H, whatever the rule kind, schedule, parametrization, overflow and s."""
+    rules = [(JE.delay_scaled(2.0, 5), R.endpoints.delay_scaled(2.0, 5)), (JE.offset(1, 6), R.endpoints.offset(1, 6)),
+             (JE.fixed(3), R.endpoints.fixed(3)), (JE.hard(), R.endpoints.hard())]
+    before_table, before_prefix = JW._weight_table._cache_size(), JW._prefix_jit._cache_size()
+    for jr, rr in rules:
+        for sched in JW.SCHEDULES:
+            for par in JW.PARAMETRIZATIONS:
+                for ov in JW.OVERFLOWS:
+                    for s in (2, 4):
+                        got = JW.weight_table(H, JW.SoftWindow(jr, sched, par, ov), s)
+                        want = np.stack([R.soft_weights(H, d, R.SoftWindow(rr, sched, par, ov), s)
+                                         for d in range(H + 1)])
+                        np.testing.assert_allclose(got, want, atol=1e-6)
+                    e = min(H, 6)
+                    np.testing.assert_allclose(JW.prefix_weights(H, 2, e, sched, par),
+                                               R.prefix_weights(H, 2, e, sched, par), atol=1e-6)
+    # Other tests may already have compiled H = 8; either way at most one new entry each.
+    assert JW._weight_table._cache_size() - before_table <= 1
+    assert JW._prefix_jit._cache_size() - before_prefix <= 1
+    JW.weight_table(H + 1, JW.SoftWindow(), S)
+    assert JW._weight_table._cache_size() - before_table <= 2
