@@ -83,6 +83,19 @@ def test_targets_and_table(result):
     assert "max|fast-sf|" in table and "training step" in table
 
 
+def test_vjp_cost_context(result):
+    """B-11: forward and forward + VJP are timed per batch size and printed as context, not as targets."""
+    assert sorted(result["vjp_cost"]) == ["1", "2"]
+    for vc in result["vjp_cost"].values():
+        assert vc["forward_ms"] > 0 and vc["forward_vjp_ms"] > 0
+        assert vc["ratio"] == pytest.approx(vc["forward_vjp_ms"] / vc["forward_ms"])
+    table = bench.format_table(result)
+    assert "context (not targets)" in table
+    assert table.count("one forward + VJP / one forward") == 2
+    assert table.count("guided / straightforward naive") == 2
+    assert not any("VJP" in t["target"] for t in result["targets"])
+
+
 def test_encode_obs_splits_the_input_projection():
     """B-3: x W_x + encode_obs(obs) equals in_proj of the concatenation within float32 tolerance."""
     cfg = bench.BenchConfig(arch="tiny")

@@ -32,6 +32,7 @@ from softrtc.reference._validate import check_choice, check_int
 from .endpoints import delay_scaled
 from .methods import delay_rows, generate_chunk, generate_chunk_from_row, method_tables
 from .policy import FlowPolicy, PolicyConfig
+from .sampler import naive_conditioning
 from .training import TrainConfig, make_train_step
 from .weights import SoftWindow
 
@@ -394,7 +395,7 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
                         "machine": platform.machine(), "python": platform.python_version()},
         "tolerance": {"atol": ATOL, "rtol": RTOL},
         "table_build_ms": {r.name: 1e3 * r.table_seconds for r in rows if r.path == "fast"},
-        "chunk": {}, "agreement": {}, "compilations": {}, "train_step": None, "targets": []}
+        "chunk": {}, "agreement": {}, "compilations": {}, "vjp_cost": {}, "train_step": None, "targets": []}
     keys = [_row_key(r, config) for r in rows]
     result["rows"] = [{"key": k, "name": r.name, "method": r.method, "path": r.path, "label": r.label}
                       for k, r in zip(keys, rows)]
@@ -412,6 +413,8 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
         times = _time_round_robin({k: call(r) for k, r in zip(keys, rows)}, config.calls, config.warmup)
         result["chunk"][str(B)] = {k: _stats(times[k], times[naive_key]) for k in keys}
         result["compilations"][str(B)] = {k: r.fn._cache_size() for k, r in zip(keys, rows)}
+        say(f"batch {B}: timing one forward against one forward + VJP")
+        result["vjp_cost"][str(B)] = _vjp_cost(config, policy, sets)
 
     if config.train_calls:
         say(f"training steps: {len(TRAIN_METHODS)} methods x {config.train_calls} calls at batch "
@@ -420,6 +423,35 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
     result["targets"] = _targets(config, result)
     result["seconds"] = time.perf_counter() - t_start
     return result
+
+
+def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
+    """One policy forward against one forward plus the VJP with respect to x, interleaved ([B-11]).
+
+    Both on the fast path (precomputed conditioning of step 0, observation
+    encoded once), so the ratio is what a guided Euler step costs relative to
+    a naive one before any sampler overhead: a floor for the guided rows.
+    """
+    graphdef, treedef, state = _params(policy)
+    cond = jax.tree.map(lambda a: a[0], naive_conditioning(policy, config.num_steps))
+
+    def model(leaves, obs):
+        p = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
+        enc = p.encode_obs(obs)
+        return lambda x: p.apply_conditioned(obs, x, cond, obs_encoding=enc)
+
+    forward = jax.jit(lambda leaves, obs, x: model(leaves, obs)(x))
+
+    def fwd_vjp(leaves, obs, x, ct):
+        v, pullback = jax.vjp(model(leaves, obs), x)
+        return v, pullback(ct)[0]
+
+    fwd_vjp = jax.jit(fwd_vjp)
+    fns = {"forward": lambda i: forward(state, sets[i % len(sets)][0], sets[i % len(sets)][1]),
+           "forward_vjp": lambda i: fwd_vjp(state, *sets[i % len(sets)])}
+    times = _time_round_robin(fns, config.calls, config.warmup)
+    f, fv = statistics.median(times["forward"]), statistics.median(times["forward_vjp"])
+    return {"forward_ms": 1e3 * f, "forward_vjp_ms": 1e3 * fv, "ratio": fv / f}
 
 
 def _train_steps(config: BenchConfig, policy: FlowPolicy) -> dict:
@@ -507,6 +539,16 @@ def format_table(res: dict) -> str:
         diffs = [res["agreement"][b][r["name"]]["max_abs_diff"] for b in bs
                  if r["path"] == "fast" and r["name"] in res["agreement"][b]]
         lines.append(f"{r['label']:<26s} {r['path']:<15s}{cells} {(f'{max(diffs):.1e}' if diffs else '-'):>12s}")
+    if res.get("vjp_cost"):
+        lines += ["", "context (not targets)"]
+        for b in bs:
+            ch, vc = res["chunk"][b], res["vjp_cost"][b]
+            guided = max(ch[k]["median_ms"] for k in ("inference_hard", "inference_soft"))
+            if "naive/straightforward" in ch:
+                lines.append(f"  guided / straightforward naive, batch {b:<6s} "
+                             f"{guided / ch['naive/straightforward']['median_ms']:>6.2f}x")
+            lines.append(f"  one forward + VJP / one forward, batch {b:<4s} {vc['ratio']:>6.2f}x "
+                         f"({vc['forward_vjp_ms']:.3f} / {vc['forward_ms']:.3f} ms)")
     ts = res.get("train_step")
     if ts:
         lines += ["", f"training step (batch {ts['batch']}, delays 0..{ts['d_max']}, "
