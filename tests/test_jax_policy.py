@@ -403,3 +403,41 @@ def test_explicit_seeds_are_deterministic():
     for la, lb in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(np.asarray(la), np.asarray(lb))
     assert not np.array_equal(np.asarray(a["in_proj"]["kernel"]), np.asarray(c["in_proj"]["kernel"]))
+
+
+def test_layer_norm_custom_vjp_matches_autodiff():
+    """P-17, P-14: the hand-written LayerNorm VJP keeps the module's forward bitwise and its gradient
+    within tolerance, alone and through the whole policy (the guided samplers' VJP in x)."""
+    import jax
+
+    from softrtc.jax.policy import layer_norm
+
+    rng = np.random.default_rng(3)
+    norm = nnx.LayerNorm(16, use_scale=False, use_bias=False, rngs=nnx.Rngs(0))
+    x = jnp.asarray(rng.standard_normal((2, 5, 16)) * 3 + 1, jnp.float32)
+    g = jnp.asarray(rng.standard_normal((2, 5, 16)), jnp.float32)
+    y, pb = jax.vjp(lambda a: layer_norm(norm, a), x)
+    y0, pb0 = jax.vjp(norm, x)
+    assert np.array_equal(np.asarray(y), np.asarray(y0))
+    np.testing.assert_allclose(pb(g)[0], pb0(g)[0], rtol=1e-4, atol=1e-5)
+    # A constant row (variance 0) gives the centred cotangent times 1/sqrt(eps), like autodiff.
+    c = jnp.ones((1, 16), jnp.float32)
+    np.testing.assert_allclose(jax.vjp(lambda a: layer_norm(norm, a), c)[1](g[0, :1])[0],
+                               jax.vjp(norm, c)[1](g[0, :1])[0], rtol=1e-4, atol=1e-2)
+
+    pol = _randomize(FlowPolicy(obs_dim=5, action_dim=2, config=TINY, rngs=nnx.Rngs(1)), 5)
+    obs = jnp.asarray(rng.standard_normal((3, 5)), jnp.float32)
+    xs = jnp.asarray(rng.standard_normal((3, TINY.action_chunk_size, 2)), jnp.float32)
+    t = jnp.full((3, TINY.action_chunk_size), 0.3)
+    ct = jnp.asarray(rng.standard_normal(xs.shape), jnp.float32)
+    got = jax.vjp(lambda a: pol(obs, a, t), xs)[1](ct)[0]
+    import softrtc.jax.policy as P
+
+    orig = P.layer_norm
+    try:
+        P.layer_norm = lambda norm, a: norm(a)  # plain autodiff of the flax module
+        want = jax.vjp(lambda a: pol(obs, a, t), xs)[1](ct)[0]
+    finally:
+        P.layer_norm = orig
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    assert float(jnp.max(jnp.abs(want))) > 1e-3  # the gradient is not trivially zero

@@ -334,18 +334,22 @@ def check_agreement(config: BenchConfig, policy: FlowPolicy, batch: int, names=N
     return _agreement(rows, reference, state, _inputs(config, policy, batch, 1)[0], delays)
 
 
-def _time_round_robin(fns: dict[str, Callable[[int], Any]], calls: int, warmup: int) -> dict[str, list]:
-    """Seconds per call of every entry, interleaved round-robin ([B-6]).
+def _time_round_robin(fns: dict[str, Callable[[int], Any]], calls: int, warmup: int,
+                      seed: int = 0) -> dict[str, list]:
+    """Seconds per call of every entry, interleaved in rounds ([B-6]).
 
-    Each round calls every function once, starting at a rotating position so
-    that no entry always runs first (after an idle gap) or last; the first
-    ``warmup`` rounds are discarded.
+    Each round calls every function once in an order drawn afresh from a
+    seeded generator, so that no entry always follows the same one: a fixed
+    cyclic order would let a heavy row (the guided samplers evict caches)
+    slow down the row after it in every round. The first ``warmup`` rounds
+    are discarded.
     """
     names = list(fns)
     times = {n: [] for n in names}
+    rng = np.random.default_rng(seed)
     for i in range(warmup + calls):
-        k = i % len(names)
-        for n in names[k:] + names[:k]:
+        for j in rng.permutation(len(names)):
+            n = names[j]
             t0 = time.perf_counter()
             jax.block_until_ready(fns[n](i))
             dt = time.perf_counter() - t0
@@ -410,7 +414,8 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
                                     delays[i % len(delays)])
 
         say(f"batch {B}: timing {len(rows)} rows x {config.calls} calls")
-        times = _time_round_robin({k: call(r) for k, r in zip(keys, rows)}, config.calls, config.warmup)
+        times = _time_round_robin({k: call(r) for k, r in zip(keys, rows)}, config.calls, config.warmup,
+                                  config.seed)
         result["chunk"][str(B)] = {k: _stats(times[k], times[naive_key]) for k in keys}
         result["compilations"][str(B)] = {k: r.fn._cache_size() for k, r in zip(keys, rows)}
         say(f"batch {B}: timing one forward against one forward + VJP")
@@ -449,7 +454,7 @@ def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
     fwd_vjp = jax.jit(fwd_vjp)
     fns = {"forward": lambda i: forward(state, sets[i % len(sets)][0], sets[i % len(sets)][1]),
            "forward_vjp": lambda i: fwd_vjp(state, *sets[i % len(sets)])}
-    times = _time_round_robin(fns, config.calls, config.warmup)
+    times = _time_round_robin(fns, config.calls, config.warmup, config.seed)
     f, fv = statistics.median(times["forward"]), statistics.median(times["forward_vjp"])
     return {"forward_ms": 1e3 * f, "forward_vjp_ms": 1e3 * fv, "ratio": fv / f}
 
@@ -475,7 +480,8 @@ def _train_steps(config: BenchConfig, policy: FlowPolicy) -> dict:
             return states[m], metrics
         return f
 
-    times = _time_round_robin({m: call(m) for m in TRAIN_METHODS}, config.train_calls, config.warmup)
+    times = _time_round_robin({m: call(m) for m in TRAIN_METHODS}, config.train_calls, config.warmup,
+                              config.seed)
     out = {"batch": B, "d_max": d_max}
     for m in TRAIN_METHODS:
         out[m] = _stats(times[m], None)
