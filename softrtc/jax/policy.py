@@ -159,9 +159,9 @@ def layer_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
     The forward is the flax module itself, so values are bitwise those of
     ``norm(x)``. The backward uses the closed form
     ``dx = r (g - mean(g) - y mean(g y))`` with ``y = norm(x)`` and
-    ``r = 1 / sqrt(var + eps)``: two reductions, where autodiff of the
-    module's statistics emits several more kernels (each guided sampler step
-    runs nine of these backwards).
+    ``r = 1 / sqrt(var + eps)``: two means, taken as one matrix product,
+    where autodiff of the module's statistics emits several reduction kernels
+    (each guided sampler step runs nine of these backwards).
     """
 
     @jax.custom_vjp
@@ -178,7 +178,11 @@ def layer_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
 
     def bwd(res, g):
         y, r = res
-        return (r * (g - jnp.mean(g, axis=-1, keepdims=True) - y * jnp.mean(g * y, axis=-1, keepdims=True)),)
+        # Both means as one product with a column of 1/C: XLA:CPU splits each wide
+        # reduction into two kernels (a tree reduction), the product is one.
+        C = g.shape[-1]
+        m = jnp.stack([g, g * y], axis=-2) @ jnp.full((C, 1), 1.0 / C, g.dtype)
+        return (r * (g - m[..., 0, :] - y * m[..., 1, :]),)
 
     ln.defvjp(fwd, bwd)
     return ln(x)
