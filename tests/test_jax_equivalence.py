@@ -300,6 +300,51 @@ def test_sampler_trajectories(seed, T, d):
     np.testing.assert_allclose(_guided_c(JFIELD, obs, noise, prior, W, T), g_ref, **TRAJ)
 
 
+_guided_split = jax.jit(JG.guided_sample_conditioned, static_argnums=(5,), static_argnames=("guided_tokens",))
+
+
+@few
+@given(st.integers(0, 10**6), st.sampled_from([1, 5]), st.integers(0, 4), st.sampled_from(["hard", "soft"]))
+def test_restricted_pull_back_matches_reference(seed, T, d, variant):
+    """G-7, G-1, G-3: the pull-back through tokens j < H - s only (guidance weights vanish beyond) gives the
+    reference guided trajectory; its velocity comes from the split evaluation of the field."""
+    obs, noise, prior = _inputs(seed)
+    W = R.guidance.guidance_prefix_weights(H, 4, d, variant)
+    g_ref = _ref_batch(lambda f, o, n, y: R.guidance.guided_sample(f, o, n, y, W, T), obs, noise, prior)
+    got = _guided_split(JFIELD, obs, noise, prior, W, T, guided_tokens=H - 4)
+    np.testing.assert_allclose(got, g_ref, **TRAJ)
+    # Per-example weights [B, H] (one delay per example) take the same path.
+    Wb = np.stack([R.guidance.guidance_prefix_weights(H, 4, dd, variant) for dd in (0, 2, 4)])
+    got_b = _guided_split(JFIELD, obs, noise, prior, Wb, T, guided_tokens=H - 4)
+    for i in range(B):
+        want = R.guidance.guided_sample(RF, obs[i], noise[i], prior[i], Wb[i], T)
+        np.testing.assert_allclose(got_b[i], want, **TRAJ)
+
+
+def test_restricted_pull_back_validation():
+    """G-7, N-7: guided_tokens must be in [1, H - 1], weights beyond it must be zero, the model must split."""
+    obs, noise, prior = _inputs(3)
+    W = R.guidance.guidance_prefix_weights(H, 4, 2, "soft")
+    with pytest.raises(ValueError, match="guided_tokens"):
+        JG.guided_sample_conditioned(JFIELD, obs, noise, prior, W, 2, guided_tokens=0)
+    with pytest.raises(ValueError, match="guided_tokens"):
+        JG.guided_sample_conditioned(JFIELD, obs, noise, prior, W, 2, guided_tokens=H)
+    # Weight 1 on token 4 (j >= guided_tokens = 4) would be silently dropped: rejected instead.
+    with pytest.raises(ValueError, match=r"weights\[\.\.\., 4:\] to be zero"):
+        JG.guided_sample_conditioned(JFIELD, obs, noise, prior, np.ones(H), 2, guided_tokens=4)
+
+    class NoSplit:
+        time_conditioning = JFIELD.time_conditioning
+        apply_conditioned = JFIELD.apply_conditioned
+
+    with pytest.raises(ValueError, match="apply_conditioned_split"):
+        JG.guided_sample_conditioned(NoSplit(), obs, noise, prior, W, 2, guided_tokens=4)
+    with pytest.raises(ValueError, match="restrict_guidance must be a bool"):
+        JM.generate_chunk_conditioned("inference_soft", JFIELD, obs, noise, prior, 4, 2, 2, restrict_guidance=1)
+    with pytest.raises(ValueError, match="head"):
+        JFIELD.apply_conditioned_split(obs, noise, JFIELD.time_conditioning(np.zeros((B, H))), H)
+
+
 @few
 @given(st.integers(0, 10**6))
 def test_per_example_weights(seed):

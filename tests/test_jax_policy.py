@@ -441,3 +441,58 @@ def test_layer_norm_custom_vjp_matches_autodiff():
         P.layer_norm = orig
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
     assert float(jnp.max(jnp.abs(want))) > 1e-3  # the gradient is not trivially zero
+
+
+_split = nnx.jit(lambda p, obs, x, cond, head: p.apply_conditioned_split(obs, x, cond, head), static_argnums=4)
+
+
+def test_apply_conditioned_split_matches_apply_conditioned():
+    """[P-18] The two token groups concatenated equal apply_conditioned, for per-token and shared conditioning."""
+    pol = _tiny(21)
+    obs, x, t = _inputs(3, seed=21)
+    enc = pol.encode_obs(obs)
+    for cond in (_tc(pol, t), _tc(pol, jnp.full((1, 1), 0.3)), _tc(pol, t[0])):
+        ref = np.asarray(_apply(pol, obs, x, cond))
+        for head in range(1, H):
+            v_head, v_tail = _split(pol, obs, x, cond, head)
+            assert v_head.shape == (3, head, ACT) and v_tail.shape == (3, H - head, ACT)
+            np.testing.assert_allclose(np.concatenate([v_head, v_tail], axis=1), ref, rtol=RTOL, atol=ATOL)
+    # With the observation encoded once ([B-3]) the result is the same function.
+    cond = _tc(pol, t)
+    v_head, v_tail = pol.apply_conditioned_split(obs, x, cond, 2, obs_encoding=enc)
+    np.testing.assert_allclose(np.concatenate([v_head, v_tail], axis=1), np.asarray(_apply(pol, obs, x, cond)),
+                               rtol=RTOL, atol=ATOL)
+    for bad, msg in ((0, "head must be an integer in"), (H, "head must be an integer in"), (True, "head must"),
+                     (2.0, "head must")):
+        with pytest.raises(ValueError, match=msg):
+            pol.apply_conditioned_split(obs, x, cond, bad)
+    with pytest.raises(ValueError, match="obs_encoding must have shape"):
+        pol.apply_conditioned_split(obs, x, cond, 2, obs_encoding=enc[:, 0])
+
+
+def test_guided_pull_back_restricted_to_guided_tokens():
+    """[P-18] [G-7] The guided sampler through the split policy gives the chunks of the full pull-back, and its
+    compiled program does less arithmetic (the tail tokens' last layers have no backward)."""
+    from softrtc.jax import methods as JM
+
+    pol = _tiny(23)
+    graphdef, state = nnx.split(pol)
+    obs, x0, _ = _inputs(2, seed=23)
+    prior = jax.random.normal(jax.random.key(24), (2, H, ACT))
+    s = 2
+
+    def run(method, restrict):
+        def f(state, obs, noise, prior, d):
+            p = nnx.merge(graphdef, state)
+            tables = JM.method_tables(method, p, H, s, 3)
+            return JM.generate_chunk_conditioned(method, p, obs, noise, prior, s, d, 3, tables=tables,
+                                                 restrict_guidance=restrict)
+        return jax.jit(f)
+
+    for method in ("inference_hard", "inference_soft"):
+        full, part = run(method, False), run(method, True)
+        for d in range(min(s, H - s) + 1):
+            a = np.asarray(part(state, obs, x0, prior, d))
+            np.testing.assert_allclose(a, np.asarray(full(state, obs, x0, prior, d)), rtol=RTOL, atol=ATOL)
+        flops = [f.lower(state, obs, x0, prior, 1).compile().cost_analysis()["flops"] for f in (full, part)]
+        assert flops[1] < flops[0], flops

@@ -192,6 +192,9 @@ class _Encoded:
     def apply_conditioned(self, obs, x, cond):
         return self.policy.apply_conditioned(obs, x, cond, obs_encoding=self.obs_encoding)
 
+    def apply_conditioned_split(self, obs, x, cond, head):
+        return self.policy.apply_conditioned_split(obs, x, cond, head, obs_encoding=self.obs_encoding)
+
 
 def _scalar_time(policy: FlowPolicy) -> Callable:
     """``velocity_fn`` that evaluates the policy at one time per sample ([S-2], [G-2], [P-9]).
@@ -234,13 +237,16 @@ def _params(policy: FlowPolicy):
     return graphdef, treedef, tuple(leaves)
 
 
-def _fast_fn(graphdef, treedef, method, window, s, T):
+def _fast_fn(graphdef, treedef, method, window, s, T, H):
     # ``row`` is delay_rows(method, method_tables(...))[d], picked on the host: the delay
     # selects an input of fixed shape, so one compilation serves every delay.
+    # [G-7] Guidance weights vanish for j >= H - s, so the pull-back skips those tokens' last layers.
+    guided = H - s if method.startswith("inference_") and s < H else None
+
     def chunk(leaves, row, obs, noise, prior, d):
         policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model = _Encoded(policy, policy.encode_obs(obs))
-        return generate_chunk_from_row(method, model, obs, noise, prior, T, row)
+        return generate_chunk_from_row(method, model, obs, noise, prior, T, row, guided_tokens=guided)
     return jax.jit(chunk)
 
 
@@ -282,7 +288,7 @@ def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row
             t0 = time.perf_counter()
             tables = jax.block_until_ready(delay_rows(method, method_tables(method, policy, H, s, T, window)))
             secs = time.perf_counter() - t0
-            fn = _fast_fn(graphdef, treedef, method, window, s, T)
+            fn = _fast_fn(graphdef, treedef, method, window, s, T, H)
         else:
             tables, secs = None, 0.0
             fn = _straightforward_fn(graphdef, treedef, method, window, s, T)

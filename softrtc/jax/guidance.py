@@ -56,20 +56,34 @@ def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:
     return jnp.minimum(c * inv_r2, beta)
 
 
-def _guided(apply_fn, obs, x, y, w, T, beta, unroll):
-    """Shared loop: ``apply_fn(k, x, t_k)`` is the velocity at step k ([G-2]..[G-5])."""
+def _guided(apply_fn, obs, x, y, w, T, beta, unroll, head=None):
+    """Shared loop: ``apply_fn(k, x)`` is the velocity at step k ([G-2]..[G-5]).
+
+    With ``head`` (an integer), ``apply_fn(k, x)`` returns the velocity as two
+    token groups ``(v[:, :head], v[:, head:])`` and the pull-back runs through
+    the first group only ([G-7]); the caller guarantees ``w[..., head:] == 0``.
+    """
     times = euler_times(T)
     (wx,) = _runtime(jnp.broadcast_to(w, x.shape[:2])[..., None])
 
     def step(k, x):
         t = times[k]
 
-        def denoise(x):
-            vel = apply_fn(k, x)
-            return x + (1.0 - t) * vel, vel
+        if head is None:
+            def denoise(x):
+                vel = apply_fn(k, x)
+                return x + (1.0 - t) * vel, vel
 
-        x1, pullback, vel = jax.vjp(denoise, x, has_aux=True)
-        err = wx * (y - x1)
+            x1, pullback, vel = jax.vjp(denoise, x, has_aux=True)
+            err = wx * (y - x1)
+        else:
+            def denoise(x):
+                v_head, v_tail = apply_fn(k, x)
+                return x[:, :head] + (1.0 - t) * v_head, jnp.concatenate([v_head, v_tail], axis=1)
+
+            # Tokens j >= head have W_j = 0, so their error is zero and is left out of the pull-back.
+            x1, pullback, vel = jax.vjp(denoise, x, has_aux=True)
+            err = wx[:, :head] * (y[:, :head] - x1)
         (g,) = pullback(err)
         return x + (vel + guidance_weight(t, beta) * g) / T
 
@@ -96,19 +110,45 @@ def guided_sample(velocity_fn, obs, noise, prior, weights, num_steps: int,
 
 
 def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
-                              max_guidance=MAX_GUIDANCE, *, cond=None, unroll: bool = True) -> jax.Array:
+                              max_guidance=MAX_GUIDANCE, *, cond=None, guided_tokens: int | None = None,
+                              unroll: bool = True) -> jax.Array:
     """:func:`guided_sample` through ``model.apply_conditioned`` ([G-2]..[G-5]).
 
     Guidance evaluates the model at the scalar time t_k ([G-2]), so the
     conditioning is that of the naive sampler (``sampler.naive_conditioning``),
     computed here if ``cond`` is omitted.
+
+    ``guided_tokens`` (optional, a static integer n in [1, H - 1]) declares
+    that ``weights[..., n:]`` is zero, as it is for the weights of [G-1] with
+    n = H - s: the pull-back then runs through the velocity of tokens j < n
+    only ([G-7]), which needs ``model.apply_conditioned_split`` ([P-18]).
+    Concrete weights are checked; traced ones are the caller's promise. The
+    chunks equal those without it within float32 rounding (not bitwise, so
+    [G-6] holds only without it).
     """
     _check_model(model)
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     cond = naive_conditioning(model, T) if cond is None else cond
+    head = None if guided_tokens is None else check_guided_tokens(model, guided_tokens, w, x.shape[1])
 
-    def apply_fn(k, x):
-        return model.apply_conditioned(obs, x, _at(cond, k))
+    if head is None:
+        def apply_fn(k, x):
+            return model.apply_conditioned(obs, x, _at(cond, k))
+    else:
+        def apply_fn(k, x):
+            return model.apply_conditioned_split(obs, x, _at(cond, k), head)
 
-    return _guided(apply_fn, obs, x, y, w, T, beta, unroll)
+    return _guided(apply_fn, obs, x, y, w, T, beta, unroll, head)
+
+
+def check_guided_tokens(model, guided_tokens, weights, H: int) -> int:
+    """Validates ``guided_tokens`` of :func:`guided_sample_conditioned` ([G-7]); returns it as an int."""
+    n = v.check_int("guided_tokens", guided_tokens, 1, H - 1)
+    if not callable(getattr(model, "apply_conditioned_split", None)):
+        raise ValueError("guided_tokens needs a model with apply_conditioned_split(obs, x, cond, head) ([P-18]), "
+                         f"which {type(model).__name__} does not provide")
+    if weights is not None and not v.is_traced(weights) and bool(jnp.any(weights[..., n:] != 0)):
+        raise ValueError(f"guided_tokens = {n} requires weights[..., {n}:] to be zero (the guidance weights of "
+                         "tokens j >= guided_tokens), got nonzero entries")
+    return n

@@ -144,11 +144,13 @@ def delay_rows(method: str, tables: dict) -> tuple:
 
 
 def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: int, row: dict, *,
-                            unroll: bool = True) -> jax.Array:
+                            guided_tokens: int | None = None, unroll: bool = True) -> jax.Array:
     """One chunk by ``method`` from a per-delay row of :func:`delay_rows` ([S-6]).
 
     ``prior`` None means the first chunk: naive sampling, and the row must be
-    that of d = 0.
+    that of d = 0. ``guided_tokens`` (guided methods only, e.g. H - s) restricts
+    the guided pull-back to tokens j < guided_tokens ([G-7]); see
+    :func:`softrtc.jax.guidance.guided_sample_conditioned`.
     """
     v.check_choice("method", method, METHODS)
     if not isinstance(row, dict) or set(row) != {"weights", "cond"}:
@@ -158,26 +160,32 @@ def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: in
         return naive_sample_conditioned(model, obs, noise, num_steps, cond=cond, unroll=unroll)
     if method.startswith("inference_"):
         return guided_sample_conditioned(model, obs, noise, prior, row["weights"], num_steps, cond=row["cond"],
-                                         unroll=unroll)
+                                         guided_tokens=guided_tokens, unroll=unroll)
     return rtc_sample_conditioned(model, obs, noise, prior, row["weights"], num_steps, cond=row["cond"],
                                   unroll=unroll)
 
 
 def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d, num_steps: int,
-                               window=None, *, tables: dict | None = None, unroll: bool = True) -> jax.Array:
+                               window=None, *, tables: dict | None = None, restrict_guidance: bool = False,
+                               unroll: bool = True) -> jax.Array:
     """:func:`generate_chunk` on the fast path of ``model.apply_conditioned`` ([S-6]).
 
     ``model`` provides ``time_conditioning`` / ``apply_conditioned`` (the flow
     policy or the JAX reference field). ``tables`` (optional) comes from
     :func:`method_tables` with the same method, H, s, T and window; with it
     the weights and the conditioning of delay ``d`` (scalar or [B]) are
-    gathered from the tables instead of computed.
+    gathered from the tables instead of computed. ``restrict_guidance``
+    (guided methods) takes the pull-back through tokens j < H - s only, where
+    the weights of [G-1] can be nonzero ([G-7], needs
+    ``model.apply_conditioned_split``); chunks agree within float32 rounding.
     """
     v.check_choice("method", method, METHODS)
     H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
     H = v.check_int("noise.shape[1] (H)", H, 1)
     s = v.check_int("s", s, 1, H)
     _check_first(prior, d)
+    if not isinstance(restrict_guidance, bool):
+        raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
     naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]
     if prior is None or method == "naive":
         return naive_sample_conditioned(model, obs, noise, num_steps, cond=naive_cond, unroll=unroll)
@@ -189,5 +197,7 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
         w = tables["weights"][dd]
         cond = select_conditioning(tables["cond"], dd) if method.startswith("train_") else naive_cond
     if method.startswith("inference_"):
-        return guided_sample_conditioned(model, obs, noise, prior, w, num_steps, cond=cond, unroll=unroll)
+        return guided_sample_conditioned(model, obs, noise, prior, w, num_steps, cond=cond,
+                                         guided_tokens=H - s if restrict_guidance and s < H else None,
+                                         unroll=unroll)
     return rtc_sample_conditioned(model, obs, noise, prior, w, num_steps, cond=cond, unroll=unroll)

@@ -216,19 +216,32 @@ class MLPMixerBlock(nnx.Module):
         return {"adaln_1": self.adaln_1(time_features), "adaln_2": self.adaln_2(time_features)}
 
     def __call__(self, x: jax.Array, m1: jax.Array, m2: jax.Array) -> jax.Array:
+        return self.channel_mixing(self.token_mixing(x, m1), m2)
+
+    def token_mixing(self, x: jax.Array, m1: jax.Array) -> jax.Array:
+        """First half of the block: modulated token MLP along H plus the gated residual [P-4]."""
         # Split order (scale, shift, gate) is fixed by the released checkpoints [P-4].
         scale_1, shift_1, gate_1 = jnp.split(m1, 3, axis=-1)
-        scale_2, shift_2, gate_2 = jnp.split(m2, 3, axis=-1)
-
         # Token mixing acts along H, so the per-token modulation is applied before it.
         y = layer_norm(self.norm_1, x) * (1 + scale_1) + shift_1
         y = jnp.swapaxes(y, -1, -2)
         y = self.token_mix_out(nnx.gelu(self.token_mix_in(y)))
-        x = x + gate_1 * jnp.swapaxes(y, -1, -2)
+        return x + gate_1 * jnp.swapaxes(y, -1, -2)
 
+    def channel_mixing(self, x: jax.Array, m2: jax.Array) -> jax.Array:
+        """Second half of the block: modulated channel MLP, token by token, plus the gated residual [P-4].
+
+        Acts on each token separately, so it may be applied to any subset of tokens [P-18].
+        """
+        scale_2, shift_2, gate_2 = jnp.split(m2, 3, axis=-1)
         y = layer_norm(self.norm_2, x) * (1 + scale_2) + shift_2
         y = self.channel_mix_out(nnx.gelu(self.channel_mix_in(y)))
         return x + gate_2 * y
+
+
+def _tokens(a: jax.Array, lo: int, hi: int | None) -> jax.Array:
+    """Tokens ``lo:hi`` of a conditioning leaf ``[..., h, F]``; a shared leaf (h = 1) serves every token."""
+    return a if a.shape[-2] == 1 else a[..., lo:hi, :]
 
 
 _List = getattr(nnx, "List", list)  # nnx.List marks the layer list as data on flax >= 0.12
@@ -395,7 +408,7 @@ class FlowPolicy(nnx.Module):
         return (obs @ kernel[self.action_dim:] + self.in_proj.bias[...])[:, None, :]
 
     def _forward(self, obs: jax.Array, x: jax.Array, cond: Mapping[str, Any],
-                 obs_encoding: jax.Array | None = None) -> jax.Array:
+                 obs_encoding: jax.Array | None = None, head: int | None = None):
         b = obs.shape[0]
         if obs_encoding is not None:
             # [B-3] split input projection: only the action rows of the kernel act per token and step.
@@ -404,11 +417,52 @@ class FlowPolicy(nnx.Module):
             # Action first, then observation: the in_proj kernel rows are laid out this way [P-2].
             obs_tok = jnp.broadcast_to(obs[:, None, :], (b, self.action_chunk_size, self.obs_dim))
             hdn = self.in_proj(jnp.concatenate([x, obs_tok], axis=-1))
-        for block, m in zip(self.mlp_stack, cond[_COND_LAYERS]):
+        layers = cond[_COND_LAYERS]
+        for block, m in zip(self.mlp_stack[:-1], layers[:-1]):
             hdn = block(hdn, m["adaln_1"], m["adaln_2"])
-        scale, shift = jnp.split(cond[_COND_FINAL], 2, axis=-1)
+        hdn = self.mlp_stack[-1].token_mixing(hdn, layers[-1]["adaln_1"])
+        if head is None:
+            return self._output(hdn, layers[-1]["adaln_2"], cond[_COND_FINAL])
+        # [P-18] Everything after the last token mixing acts token by token.
+        m2, fin = layers[-1]["adaln_2"], cond[_COND_FINAL]
+        return (self._output(hdn[:, :head], _tokens(m2, 0, head), _tokens(fin, 0, head)),
+                self._output(hdn[:, head:], _tokens(m2, head, None), _tokens(fin, head, None)))
+
+    def _output(self, hdn: jax.Array, m2: jax.Array, fin: jax.Array) -> jax.Array:
+        """The per-token layers: last block's channel mixing, final modulated LayerNorm, output projection."""
+        hdn = self.mlp_stack[-1].channel_mixing(hdn, m2)
+        scale, shift = jnp.split(fin, 2, axis=-1)
         hdn = layer_norm(self.final_norm, hdn) * (1 + scale) + shift
         return self.out_proj(hdn)
+
+    def apply_conditioned_split(self, obs: Any, x: Any, cond: Mapping[str, Any], head: int, *,
+                                obs_encoding: Any = None) -> tuple[jax.Array, jax.Array]:
+        """``apply_conditioned`` as two token groups: ``(v[:, :head], v[:, head:])`` [P-18].
+
+        Everything after the last block's token mixing (its channel MLP, the
+        final modulated LayerNorm, the output projection) acts on each token
+        alone, so it is evaluated separately for tokens ``j < head`` and
+        ``j >= head``. A VJP of the first group then never runs the backward
+        of those layers for the second group (the guided samplers' restricted
+        pull-back, [G-7]). The two results concatenated along H equal
+        ``apply_conditioned`` within [P-14] (not bitwise: the matrix products
+        run on fewer rows). ``head`` is a static integer in [1, H - 1].
+
+        >>> # v_head, v_tail = pol.apply_conditioned_split(obs, x, cond, 4)  # [B, 4, A], [B, H - 4, A]
+        """
+        if isinstance(head, bool) or not isinstance(head, (int, np.integer)) or not 1 <= head < self.action_chunk_size:
+            raise ValueError(f"head must be an integer in [1, {self.action_chunk_size - 1}] (H - 1), got {head!r}")
+        head = int(head)
+        obs, x = self._check_obs_x(obs, x)
+        self._check_cond(cond, obs.shape[0])
+        enc = None
+        if obs_encoding is not None:
+            enc = _as_float_array("obs_encoding", obs_encoding)
+            if tuple(enc.shape) != (obs.shape[0], 1, self.channel_dim):
+                raise ValueError(f"obs_encoding must have shape [B, 1, C] = [{obs.shape[0]}, 1, {self.channel_dim}] "
+                                 f"(encode_obs(obs)), got {tuple(enc.shape)}")
+            _check_finite("obs_encoding", enc)
+        return self._forward(obs, x, cond, enc, head=head)
 
     def __call__(self, obs: Any, x: Any, t: Any) -> jax.Array:
         """Velocity ``[B, H, A]`` with flow time ``t`` of shape ``[B, H]`` or ``[B]`` [P-9].

@@ -103,6 +103,21 @@ class ReferenceVelocityField:
         h = self._hidden(obs, x, jnp.asarray(cond, jnp.float32))
         return (h @ self.params["W2"] + self.params["b2"]).reshape(x.shape)
 
+    def apply_conditioned_split(self, obs, x, cond, head: int) -> tuple:
+        """``apply_conditioned`` as ``(v[..., :head, :], v[..., head:, :])`` ([G-7], the interface of [P-18]).
+
+        The output layer is evaluated on the columns of each token group only,
+        so a VJP of the first group skips the second group's output columns.
+        ``head`` is a static integer in [1, H - 1].
+        """
+        head = v.check_int("head", head, 1, self.horizon - 1)
+        obs, x = self._check(obs, x)
+        h = self._hidden(obs, x, jnp.asarray(cond, jnp.float32))
+        W2, b2, n = self.params["W2"], self.params["b2"], head * self.action_dim
+        lead = x.shape[:-2]
+        return ((h @ W2[:, :n] + b2[:n]).reshape(lead + (head, self.action_dim)),
+                (h @ W2[:, n:] + b2[n:]).reshape(lead + (self.horizon - head, self.action_dim)))
+
     def __call__(self, obs, x, t) -> jax.Array:
         """Velocity [..., H, A] at x [..., H, A] with per-token time t [..., H] ([F-1])."""
         obs, x = self._check(obs, x)
