@@ -384,14 +384,17 @@ class FlowPolicy(nnx.Module):
         """
         obs, x = self._check_obs_x(obs, x)
         self._check_cond(cond, obs.shape[0])
+        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]))
+
+    def _check_encoding(self, obs_encoding: Any, batch: int) -> jax.Array | None:
         if obs_encoding is None:
-            return self._forward(obs, x, cond)
+            return None
         enc = _as_float_array("obs_encoding", obs_encoding)
-        if tuple(enc.shape) != (obs.shape[0], 1, self.channel_dim):
-            raise ValueError(f"obs_encoding must have shape [B, 1, C] = [{obs.shape[0]}, 1, {self.channel_dim}] "
+        if tuple(enc.shape) != (batch, 1, self.channel_dim):
+            raise ValueError(f"obs_encoding must have shape [B, 1, C] = [{batch}, 1, {self.channel_dim}] "
                              f"(encode_obs(obs)), got {tuple(enc.shape)}")
         _check_finite("obs_encoding", enc)
-        return self._forward(obs, x, cond, enc)
+        return enc
 
     def encode_obs(self, obs: Any) -> jax.Array:
         """Observation part of the input projection, ``obs @ W_obs + b`` of shape ``[B, 1, C]`` ([B-3]).
@@ -455,14 +458,7 @@ class FlowPolicy(nnx.Module):
         head = int(head)
         obs, x = self._check_obs_x(obs, x)
         self._check_cond(cond, obs.shape[0])
-        enc = None
-        if obs_encoding is not None:
-            enc = _as_float_array("obs_encoding", obs_encoding)
-            if tuple(enc.shape) != (obs.shape[0], 1, self.channel_dim):
-                raise ValueError(f"obs_encoding must have shape [B, 1, C] = [{obs.shape[0]}, 1, {self.channel_dim}] "
-                                 f"(encode_obs(obs)), got {tuple(enc.shape)}")
-            _check_finite("obs_encoding", enc)
-        return self._forward(obs, x, cond, enc, head=head)
+        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]), head=head)
 
     def __call__(self, obs: Any, x: Any, t: Any) -> jax.Array:
         """Velocity ``[B, H, A]`` with flow time ``t`` of shape ``[B, H]`` or ``[B]`` [P-9].
