@@ -440,23 +440,37 @@ def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
     """One policy forward against one forward plus the VJP with respect to x, interleaved ([B-11]).
 
     Both on the fast path (precomputed conditioning of step 0, observation
-    encoded once), so the ratio is what a guided Euler step costs relative to
+    encoded once); the VJP is the guided rows' own, restricted to the tokens
+    j < H - s ([G-7]). The ratio is what a guided Euler step costs relative to
     a naive one before any sampler overhead: a floor for the guided rows.
     """
     graphdef, treedef, state = _params(policy)
     cond = jax.tree.map(lambda a: a[0], naive_conditioning(policy, config.num_steps))
+    H = policy.action_chunk_size
+    head = H - config.execute_horizon if config.execute_horizon < H else None
 
-    def model(leaves, obs):
+    def merged(leaves, obs):
         p = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
-        enc = p.encode_obs(obs)
-        return lambda x: p.apply_conditioned(obs, x, cond, obs_encoding=enc)
+        return p, p.encode_obs(obs)
 
-    forward = jax.jit(lambda leaves, obs, x: model(leaves, obs)(x))
+    def forward(leaves, obs, x):
+        p, enc = merged(leaves, obs)
+        return p.apply_conditioned(obs, x, cond, obs_encoding=enc)
 
     def fwd_vjp(leaves, obs, x, ct):
-        v, pullback = jax.vjp(model(leaves, obs), x)
-        return v, pullback(ct)[0]
+        p, enc = merged(leaves, obs)
+        if head is None:
+            v, pullback = jax.vjp(lambda x: p.apply_conditioned(obs, x, cond, obs_encoding=enc), x)
+            return v, pullback(ct)[0]
 
+        def head_velocity(x):
+            v_head, v_tail = p.apply_conditioned_split(obs, x, cond, head, obs_encoding=enc)
+            return v_head, jnp.concatenate([v_head, v_tail], axis=1)
+
+        _, pullback, v = jax.vjp(head_velocity, x, has_aux=True)
+        return v, pullback(ct[:, :head])[0]
+
+    forward = jax.jit(forward)
     fwd_vjp = jax.jit(fwd_vjp)
     fns = {"forward": lambda i: forward(state, sets[i % len(sets)][0], sets[i % len(sets)][1]),
            "forward_vjp": lambda i: fwd_vjp(state, *sets[i % len(sets)])}
