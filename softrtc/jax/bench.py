@@ -175,25 +175,27 @@ def _inputs(config: BenchConfig, policy: FlowPolicy, batch: int, count: int) -> 
 
 
 class _Encoded:
-    """The policy seen through one observation encoding ([B-3]).
+    """The policy seen through one observation encoding ([B-3]) and, optionally, its pull-back kernels ([P-19]).
 
     Exposes the ``time_conditioning`` / ``apply_conditioned`` interface that
     the conditioned samplers use, with ``in_proj``'s observation half computed
     once per sampler call instead of once per Euler step.
     """
 
-    def __init__(self, policy: FlowPolicy, obs_encoding: jax.Array):
+    def __init__(self, policy: FlowPolicy, obs_encoding: jax.Array, pullback=None):
         self.policy = policy
         self.obs_encoding = obs_encoding
+        self.pullback = pullback
 
     def time_conditioning(self, t):
         return self.policy.time_conditioning(t)
 
     def apply_conditioned(self, obs, x, cond):
-        return self.policy.apply_conditioned(obs, x, cond, obs_encoding=self.obs_encoding)
+        return self.policy.apply_conditioned(obs, x, cond, obs_encoding=self.obs_encoding, pullback=self.pullback)
 
     def apply_conditioned_split(self, obs, x, cond, head):
-        return self.policy.apply_conditioned_split(obs, x, cond, head, obs_encoding=self.obs_encoding)
+        return self.policy.apply_conditioned_split(obs, x, cond, head, obs_encoding=self.obs_encoding,
+                                                   pullback=self.pullback)
 
 
 def _scalar_time(policy: FlowPolicy) -> Callable:
@@ -221,7 +223,8 @@ class _Row:
     table_seconds: float
 
     def tables_for(self, d: int):
-        """What ``fn`` takes for delay ``d``: the fast path's per-delay row, looked up on the host ([B-3])."""
+        """What ``fn`` takes for delay ``d``: the fast path's per-delay row, looked up on the host, with the
+        policy's pull-back kernels for the guided rows ([B-3])."""
         return self.tables[d] if self.path == "fast" else self.tables
 
 
@@ -243,9 +246,10 @@ def _fast_fn(graphdef, treedef, method, window, s, T, H):
     # [G-7] Guidance weights vanish for j >= H - s, so the pull-back skips those tokens' last layers.
     guided = H - s if method.startswith("inference_") and s < H else None
 
-    def chunk(leaves, row, obs, noise, prior, d):
+    def chunk(leaves, tables, obs, noise, prior, d):
+        row, pullback = tables
         policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
-        model = _Encoded(policy, policy.encode_obs(obs))
+        model = _Encoded(policy, policy.encode_obs(obs), pullback)
         return generate_chunk_from_row(method, model, obs, noise, prior, T, row, guided_tokens=guided)
     return jax.jit(chunk)
 
@@ -286,7 +290,10 @@ def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row
         window = _window(wspec)
         if path == "fast":
             t0 = time.perf_counter()
-            tables = jax.block_until_ready(delay_rows(method, method_tables(method, policy, H, s, T, window)))
+            per_delay = delay_rows(method, method_tables(method, policy, H, s, T, window))
+            # [P-19] The guided rows' VJP multiplies by transposed kernels, stored once per parameter set.
+            pullback = policy.pullback_kernels() if method.startswith("inference_") else None
+            tables = jax.block_until_ready(tuple((row, pullback) for row in per_delay))
             secs = time.perf_counter() - t0
             fn = _fast_fn(graphdef, treedef, method, window, s, T, H)
         else:
@@ -441,8 +448,9 @@ def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
 
     Both on the fast path (precomputed conditioning of step 0, observation
     encoded once); the VJP is the guided rows' own, restricted to the tokens
-    j < H - s ([G-7]). The ratio is what a guided Euler step costs relative to
-    a naive one before any sampler overhead: a floor for the guided rows.
+    j < H - s ([G-7]) and multiplying by the stored transposed kernels
+    ([P-19]). The ratio is what a guided Euler step costs relative to a naive
+    one before any sampler overhead: a floor for the guided rows.
     """
     graphdef, treedef, state = _params(policy)
     cond = jax.tree.map(lambda a: a[0], naive_conditioning(policy, config.num_steps))
@@ -457,14 +465,15 @@ def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
         p, enc = merged(leaves, obs)
         return p.apply_conditioned(obs, x, cond, obs_encoding=enc)
 
-    def fwd_vjp(leaves, obs, x, ct):
+    def fwd_vjp(leaves, kernels_t, obs, x, ct):
         p, enc = merged(leaves, obs)
         if head is None:
-            v, pullback = jax.vjp(lambda x: p.apply_conditioned(obs, x, cond, obs_encoding=enc), x)
+            v, pullback = jax.vjp(lambda x: p.apply_conditioned(obs, x, cond, obs_encoding=enc,
+                                                                 pullback=kernels_t), x)
             return v, pullback(ct)[0]
 
         def head_velocity(x):
-            v_head, v_tail = p.apply_conditioned_split(obs, x, cond, head, obs_encoding=enc)
+            v_head, v_tail = p.apply_conditioned_split(obs, x, cond, head, obs_encoding=enc, pullback=kernels_t)
             return v_head, jnp.concatenate([v_head, v_tail], axis=1)
 
         _, pullback, v = jax.vjp(head_velocity, x, has_aux=True)
@@ -472,8 +481,9 @@ def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
 
     forward = jax.jit(forward)
     fwd_vjp = jax.jit(fwd_vjp)
+    kernels_t = jax.block_until_ready(policy.pullback_kernels())
     fns = {"forward": lambda i: forward(state, sets[i % len(sets)][0], sets[i % len(sets)][1]),
-           "forward_vjp": lambda i: fwd_vjp(state, *sets[i % len(sets)])}
+           "forward_vjp": lambda i: fwd_vjp(state, kernels_t, *sets[i % len(sets)])}
     times = _time_round_robin(fns, config.calls, config.warmup, config.seed)
     f, fv = statistics.median(times["forward"]), statistics.median(times["forward_vjp"])
     return {"forward_ms": 1e3 * f, "forward_vjp_ms": 1e3 * fv, "ratio": fv / f}

@@ -49,6 +49,7 @@ MAX_PERIOD = 4.0
 
 _COND_LAYERS = "mlp_stack"
 _COND_FINAL = "final_adaln"
+_PB_LAYERS = "mlp_stack"
 
 
 # --------------------------------------------------------------------------- validation
@@ -188,6 +189,44 @@ def layer_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
     return ln(x)
 
 
+_BLOCK_LINEARS = ("token_mix_in", "token_mix_out", "channel_mix_in", "channel_mix_out")
+
+
+def _contract(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    # nnx.Linear's own contraction: last axis of x with the kernel's first.
+    return jax.lax.dot_general(x, kernel, (((x.ndim - 1,), (0,)), ((), ())))
+
+
+@jax.custom_vjp
+def _dot_pullback(x: jax.Array, kernel: jax.Array, kernel_t: jax.Array) -> jax.Array:
+    """``x @ kernel`` whose VJP w.r.t. ``x`` multiplies by the stored transpose ``kernel_t`` [P-19]."""
+    return _contract(x, kernel)
+
+
+def _dot_pullback_fwd(x, kernel, kernel_t):
+    return _contract(x, kernel), (x, kernel_t)
+
+
+def _dot_pullback_bwd(res, g):
+    x, kernel_t = res
+    lead = tuple(range(x.ndim - 1))
+    # The kernel's cotangent is the usual x^T g; kernel_t does not enter the value, so its cotangent is zero.
+    return _contract(g, kernel_t), jax.lax.dot_general(x, g, ((lead, lead), ((), ()))), jnp.zeros_like(kernel_t)
+
+
+_dot_pullback.defvjp(_dot_pullback_fwd, _dot_pullback_bwd)
+
+
+def _linear(module: nnx.Linear, x: jax.Array, kernel_t: jax.Array | None) -> jax.Array:
+    """``module(x)``; with ``kernel_t`` its pull-back uses that stored transpose ([P-19]), same forward values."""
+    if kernel_t is None:
+        return module(x)
+    y = _dot_pullback(x, module.kernel[...], kernel_t)
+    if module.bias is not None:
+        y = y + jnp.reshape(module.bias[...], (1,) * (y.ndim - 1) + (-1,))
+    return y
+
+
 class MLPMixerBlock(nnx.Module):
     """One mixer layer with adaLN-zero modulation [P-4].
 
@@ -218,24 +257,31 @@ class MLPMixerBlock(nnx.Module):
     def __call__(self, x: jax.Array, m1: jax.Array, m2: jax.Array) -> jax.Array:
         return self.channel_mixing(self.token_mixing(x, m1), m2)
 
-    def token_mixing(self, x: jax.Array, m1: jax.Array) -> jax.Array:
-        """First half of the block: modulated token MLP along H plus the gated residual [P-4]."""
+    def token_mixing(self, x: jax.Array, m1: jax.Array, pullback: Mapping | None = None) -> jax.Array:
+        """First half of the block: modulated token MLP along H plus the gated residual [P-4].
+
+        ``pullback`` (optional) is this block's entry of :meth:`FlowPolicy.pullback_kernels` [P-19].
+        """
+        pb = pullback or {}
         # Split order (scale, shift, gate) is fixed by the released checkpoints [P-4].
         scale_1, shift_1, gate_1 = jnp.split(m1, 3, axis=-1)
         # Token mixing acts along H, so the per-token modulation is applied before it.
         y = layer_norm(self.norm_1, x) * (1 + scale_1) + shift_1
         y = jnp.swapaxes(y, -1, -2)
-        y = self.token_mix_out(nnx.gelu(self.token_mix_in(y)))
+        y = _linear(self.token_mix_out, nnx.gelu(_linear(self.token_mix_in, y, pb.get("token_mix_in"))),
+                    pb.get("token_mix_out"))
         return x + gate_1 * jnp.swapaxes(y, -1, -2)
 
-    def channel_mixing(self, x: jax.Array, m2: jax.Array) -> jax.Array:
+    def channel_mixing(self, x: jax.Array, m2: jax.Array, pullback: Mapping | None = None) -> jax.Array:
         """Second half of the block: modulated channel MLP, token by token, plus the gated residual [P-4].
 
         Acts on each token separately, so it may be applied to any subset of tokens [P-18].
         """
+        pb = pullback or {}
         scale_2, shift_2, gate_2 = jnp.split(m2, 3, axis=-1)
         y = layer_norm(self.norm_2, x) * (1 + scale_2) + shift_2
-        y = self.channel_mix_out(nnx.gelu(self.channel_mix_in(y)))
+        y = _linear(self.channel_mix_out, nnx.gelu(_linear(self.channel_mix_in, y, pb.get("channel_mix_in"))),
+                    pb.get("channel_mix_out"))
         return x + gate_2 * y
 
 
@@ -371,7 +417,8 @@ class FlowPolicy(nnx.Module):
 
     # ------------------------------------------------------------------ network
 
-    def apply_conditioned(self, obs: Any, x: Any, cond: Mapping[str, Any], *, obs_encoding: Any = None) -> jax.Array:
+    def apply_conditioned(self, obs: Any, x: Any, cond: Mapping[str, Any], *, obs_encoding: Any = None,
+                          pullback: Mapping | None = None) -> jax.Array:
         """Velocity ``[B, H, A]`` from precomputed time conditioning ``cond`` [P-12].
 
         Every leaf of ``cond`` has shape ``[b, h, F]`` (or ``[h, F]``, read as
@@ -381,10 +428,13 @@ class FlowPolicy(nnx.Module):
 
         ``obs_encoding`` (optional, ``[B, 1, C]``) is :meth:`encode_obs` of ``obs``;
         with it the observation half of ``in_proj`` is not recomputed (spec/32-runtime-bench.md, [B-3]).
+        ``pullback`` (optional) is :meth:`pullback_kernels`: same values, and a
+        VJP with respect to ``x`` multiplies by the stored transposed kernels [P-19].
         """
         obs, x = self._check_obs_x(obs, x)
         self._check_cond(cond, obs.shape[0])
-        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]))
+        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]),
+                             pullback=self._check_pullback(pullback))
 
     def _check_encoding(self, obs_encoding: Any, batch: int) -> jax.Array | None:
         if obs_encoding is None:
@@ -395,6 +445,49 @@ class FlowPolicy(nnx.Module):
                              f"(encode_obs(obs)), got {tuple(enc.shape)}")
         _check_finite("obs_encoding", enc)
         return enc
+
+    def pullback_kernels(self) -> dict:
+        """Transposed copies of the kernels a VJP with respect to ``x`` multiplies by [P-19].
+
+        ``{"mlp_stack": ({"token_mix_in": W.T, "token_mix_out": ..., "channel_mix_in": ...,
+        "channel_mix_out": ...}, ...) per layer, "out_proj": W.T, "in_proj_x": W[:A].T}``.
+        They depend on the parameters only: compute them once per parameter set,
+        outside the jitted sampler (inside it XLA folds the transpose back into
+        the product), and pass them as ``pullback=`` to :meth:`apply_conditioned`.
+        """
+        def t(kernel):
+            return jnp.asarray(kernel).T.copy()
+
+        return {
+            _PB_LAYERS: tuple({name: t(getattr(block, name).kernel[...]) for name in _BLOCK_LINEARS}
+                              for block in self.mlp_stack),
+            "out_proj": t(self.out_proj.kernel[...]),
+            "in_proj_x": t(self.in_proj.kernel[...][: self.action_dim]),
+        }
+
+    def _check_pullback(self, pullback: Any) -> Mapping | None:
+        if pullback is None:
+            return None
+        c, a = self.channel_dim, self.action_dim
+
+        def shape(block, name):
+            return tuple(getattr(block, name).kernel.shape)[::-1]
+
+        want = {_PB_LAYERS: tuple({n: shape(b, n) for n in _BLOCK_LINEARS} for b in self.mlp_stack),
+                "out_proj": shape(self, "out_proj"), "in_proj_x": (c, a)}
+        ok = isinstance(pullback, Mapping) and set(pullback) == set(want) \
+            and isinstance(pullback[_PB_LAYERS], (tuple, list)) and len(pullback[_PB_LAYERS]) == self.num_layers
+        if ok:
+            got = {_PB_LAYERS: tuple({n: tuple(jnp.shape(e.get(n, ()))) for n in _BLOCK_LINEARS}
+                                     if isinstance(e, Mapping) and set(e) == set(_BLOCK_LINEARS) else None
+                                     for e in pullback[_PB_LAYERS]),
+                   "out_proj": tuple(jnp.shape(pullback["out_proj"])),
+                   "in_proj_x": tuple(jnp.shape(pullback["in_proj_x"]))}
+            ok = got == want
+        if not ok:
+            raise ValueError("pullback must be the mapping returned by pullback_kernels() of this policy "
+                             f"(keys and transposed kernel shapes {want})")
+        return pullback
 
     def encode_obs(self, obs: Any) -> jax.Array:
         """Observation part of the input projection, ``obs @ W_obs + b`` of shape ``[B, 1, C]`` ([B-3]).
@@ -411,35 +504,40 @@ class FlowPolicy(nnx.Module):
         return (obs @ kernel[self.action_dim:] + self.in_proj.bias[...])[:, None, :]
 
     def _forward(self, obs: jax.Array, x: jax.Array, cond: Mapping[str, Any],
-                 obs_encoding: jax.Array | None = None, head: int | None = None):
+                 obs_encoding: jax.Array | None = None, head: int | None = None, pullback: Mapping | None = None):
         b = obs.shape[0]
+        pb = pullback or {_PB_LAYERS: (None,) * self.num_layers}
         if obs_encoding is not None:
             # [B-3] split input projection: only the action rows of the kernel act per token and step.
-            hdn = x @ self.in_proj.kernel[...][: self.action_dim] + obs_encoding
+            wx = self.in_proj.kernel[...][: self.action_dim]
+            hdn = (x @ wx if pullback is None else _dot_pullback(x, wx, pullback["in_proj_x"])) + obs_encoding
         else:
             # Action first, then observation: the in_proj kernel rows are laid out this way [P-2].
             obs_tok = jnp.broadcast_to(obs[:, None, :], (b, self.action_chunk_size, self.obs_dim))
             hdn = self.in_proj(jnp.concatenate([x, obs_tok], axis=-1))
         layers = cond[_COND_LAYERS]
-        for block, m in zip(self.mlp_stack[:-1], layers[:-1]):
-            hdn = block(hdn, m["adaln_1"], m["adaln_2"])
-        hdn = self.mlp_stack[-1].token_mixing(hdn, layers[-1]["adaln_1"])
+        for block, m, kt in zip(self.mlp_stack[:-1], layers[:-1], pb[_PB_LAYERS][:-1]):
+            hdn = block.channel_mixing(block.token_mixing(hdn, m["adaln_1"], kt), m["adaln_2"], kt)
+        last = pb[_PB_LAYERS][-1]
+        hdn = self.mlp_stack[-1].token_mixing(hdn, layers[-1]["adaln_1"], last)
+        m2, fin, out_t = layers[-1]["adaln_2"], cond[_COND_FINAL], pb.get("out_proj")
         if head is None:
-            return self._output(hdn, layers[-1]["adaln_2"], cond[_COND_FINAL])
+            return self._output(hdn, m2, fin, last, out_t)
         # [P-18] Everything after the last token mixing acts token by token.
-        m2, fin = layers[-1]["adaln_2"], cond[_COND_FINAL]
-        return (self._output(hdn[:, :head], _tokens(m2, 0, head), _tokens(fin, 0, head)),
-                self._output(hdn[:, head:], _tokens(m2, head, None), _tokens(fin, head, None)))
+        return (self._output(hdn[:, :head], _tokens(m2, 0, head), _tokens(fin, 0, head), last, out_t),
+                self._output(hdn[:, head:], _tokens(m2, head, None), _tokens(fin, head, None), last, out_t))
 
-    def _output(self, hdn: jax.Array, m2: jax.Array, fin: jax.Array) -> jax.Array:
+    def _output(self, hdn: jax.Array, m2: jax.Array, fin: jax.Array, last: Mapping | None,
+                out_t: jax.Array | None) -> jax.Array:
         """The per-token layers: last block's channel mixing, final modulated LayerNorm, output projection."""
-        hdn = self.mlp_stack[-1].channel_mixing(hdn, m2)
+        hdn = self.mlp_stack[-1].channel_mixing(hdn, m2, last)
         scale, shift = jnp.split(fin, 2, axis=-1)
         hdn = layer_norm(self.final_norm, hdn) * (1 + scale) + shift
-        return self.out_proj(hdn)
+        return _linear(self.out_proj, hdn, out_t)
 
     def apply_conditioned_split(self, obs: Any, x: Any, cond: Mapping[str, Any], head: int, *,
-                                obs_encoding: Any = None) -> tuple[jax.Array, jax.Array]:
+                                obs_encoding: Any = None, pullback: Mapping | None = None
+                                ) -> tuple[jax.Array, jax.Array]:
         """``apply_conditioned`` as two token groups: ``(v[:, :head], v[:, head:])`` [P-18].
 
         Everything after the last block's token mixing (its channel MLP, the
@@ -449,7 +547,8 @@ class FlowPolicy(nnx.Module):
         of those layers for the second group (the guided samplers' restricted
         pull-back, [G-7]). The two results concatenated along H equal
         ``apply_conditioned`` within [P-14] (not bitwise: the matrix products
-        run on fewer rows). ``head`` is a static integer in [1, H - 1].
+        run on fewer rows). ``head`` is a static integer in [1, H - 1];
+        ``obs_encoding`` and ``pullback`` as in :meth:`apply_conditioned`.
 
         >>> # v_head, v_tail = pol.apply_conditioned_split(obs, x, cond, 4)  # [B, 4, A], [B, H - 4, A]
         """
@@ -458,7 +557,8 @@ class FlowPolicy(nnx.Module):
         head = int(head)
         obs, x = self._check_obs_x(obs, x)
         self._check_cond(cond, obs.shape[0])
-        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]), head=head)
+        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]), head=head,
+                             pullback=self._check_pullback(pullback))
 
     def __call__(self, obs: Any, x: Any, t: Any) -> jax.Array:
         """Velocity ``[B, H, A]`` with flow time ``t`` of shape ``[B, H]`` or ``[B]`` [P-9].
