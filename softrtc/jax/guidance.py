@@ -130,7 +130,7 @@ def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     cond = naive_conditioning(model, T) if cond is None else cond
-    head = None if guided_tokens is None else check_guided_tokens(model, guided_tokens, w, x.shape[1])
+    head = None if guided_tokens is None else _check_guided_tokens(model, guided_tokens, w, x.shape[1])
 
     if head is None:
         def apply_fn(k, x):
@@ -142,7 +142,7 @@ def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
     return _guided(apply_fn, obs, x, y, w, T, beta, unroll, head)
 
 
-def check_guided_tokens(model, guided_tokens, weights, H: int) -> int:
+def _check_guided_tokens(model, guided_tokens, weights, H: int) -> int:
     """Validates ``guided_tokens`` of :func:`guided_sample_conditioned` ([G-7]); returns it as an int."""
     n = v.check_int("guided_tokens", guided_tokens, 1, H - 1)
     if not callable(getattr(model, "apply_conditioned_split", None)):

@@ -513,6 +513,7 @@ class FlowPolicy(nnx.Module):
             hdn = (x @ wx if pullback is None else _dot_pullback(x, wx, pullback["in_proj_x"])) + obs_encoding
         else:
             # Action first, then observation: the in_proj kernel rows are laid out this way [P-2].
+            # (The stored transpose covers only the action rows, so this full projection keeps autodiff's VJP.)
             obs_tok = jnp.broadcast_to(obs[:, None, :], (b, self.action_chunk_size, self.obs_dim))
             hdn = self.in_proj(jnp.concatenate([x, obs_tok], axis=-1))
         layers = cond[_COND_LAYERS]
