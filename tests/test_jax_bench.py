@@ -14,7 +14,7 @@ import jax.numpy as jnp  # noqa: E402
 from softrtc.jax import bench  # noqa: E402
 from softrtc.jax import cli as jax_cli  # noqa: E402
 
-TINY = dict(arch="tiny", calls=3, warmup=1, batch_sizes=(1, 2), train_calls=2, train_batch=2, num_steps=2)
+TINY = dict(arch="tiny", calls=3, warmup=1, batch_sizes=(1, 4), train_calls=2, train_batch=2, num_steps=2)
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def test_rows_and_json_structure(result, tmp_path):
     """B-1, B-10: every method row plus the straightforward naive and train-soft rows, per batch size."""
     keys = [r["key"] for r in result["rows"]]
     assert keys == list(bench.CHUNK_ROWS) + ["naive/straightforward", "train_soft_lam2/straightforward"]
-    assert sorted(result["chunk"]) == ["1", "2"]
+    assert sorted(result["chunk"]) == ["1", "4"]
     for per_b in result["chunk"].values():
         assert list(per_b) == keys
         for st in per_b.values():
@@ -71,13 +71,13 @@ def test_one_compilation_per_batch_size(result):
 def test_targets_and_table(result):
     """B-8, B-9, B-10: every target is reported with PASS/FAIL and printed."""
     names = [t["target"] for t in result["targets"]]
-    for B in (1, 2):
+    for B in (1, 4):
         assert f"train-time samplers / naive, batch {B}" in names
         assert f"naive / straightforward naive, batch {B}" in names
         assert f"guided samplers / naive, batch {B}" in names
     assert "soft / hard training step" in names
     limits = {t["target"]: t["limit"] for t in result["targets"]}
-    assert limits["guided samplers / naive, batch 1"] == 1.7 and limits["guided samplers / naive, batch 2"] == 2.0
+    assert limits["guided samplers / naive, batch 1"] == 1.7 and limits["guided samplers / naive, batch 4"] == 2.0
     table = bench.format_table(result)
     assert table.count("PASS") + table.count("FAIL") == len(result["targets"])
     assert "max|fast-sf|" in table and "training step" in table
@@ -85,7 +85,7 @@ def test_targets_and_table(result):
 
 def test_vjp_cost_context(result):
     """B-11: forward and forward + VJP are timed per batch size and printed as context, not as targets."""
-    assert sorted(result["vjp_cost"]) == ["1", "2"]
+    assert sorted(result["vjp_cost"]) == ["1", "4"]
     for vc in result["vjp_cost"].values():
         assert vc["forward_ms"] > 0 and vc["forward_vjp_ms"] > 0
         assert vc["ratio"] == pytest.approx(vc["forward_vjp_ms"] / vc["forward_ms"])
@@ -94,6 +94,28 @@ def test_vjp_cost_context(result):
     assert table.count("one forward + VJP / one forward") == 2
     assert table.count("guided / straightforward naive") == 2
     assert not any("VJP" in t["target"] for t in result["targets"])
+
+
+def test_guided_rows_restrict_the_pull_back_with_enough_rows(result):
+    """B-3, G-7: the guided rows take the restricted pull-back iff batch * min(H - s, s) >= 16."""
+    g = bench.guided_tokens_for
+    assert bench.RESTRICT_MIN_ROWS == 16
+    assert g("inference_soft", 8, 4, 1) is None and g("inference_hard", 8, 4, 3) is None
+    assert g("inference_soft", 8, 4, 4) == 4 and g("inference_hard", 8, 4, 32) == 4
+    assert g("inference_soft", 8, 6, 8) == 2 and g("inference_soft", 8, 6, 7) is None  # min(H - s, s) = 2
+    assert g("inference_soft", 8, 8, 32) is None  # s = H: nothing to restrict to
+    for method in ("naive", "train_hard", "train_soft"):
+        assert g(method, 8, 4, 32) is None
+    for args, word in [(("inference", 8, 4, 1), "method"), (("naive", 8, 9, 1), "s"), (("naive", 8, 4, 0), "batch"),
+                       (("naive", 1, 1, 1), "H"), (("naive", 8, 4, 2.0), "batch")]:
+        with pytest.raises(ValueError, match=word):
+            g(*args)
+    # The tiny benchmark (H 8, s 4) runs batch 1 with the full pull-back and batch 4 with the restricted one,
+    # and both agree with the straightforward path (test_fast_and_straightforward_agree).
+    assert result["restricted_pullback"] == {"1": False, "4": True}
+    table = bench.format_table(result)
+    assert "pull-back over all tokens" in table
+    assert "pull-back restricted to j < H - s" in table
 
 
 def test_encode_obs_splits_the_input_projection():

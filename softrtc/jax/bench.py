@@ -41,6 +41,7 @@ __all__ = [
     "CHUNK_ROWS",
     "BenchConfig",
     "build_rows",
+    "guided_tokens_for",
     "run_benchmark",
     "format_table",
     "write_json",
@@ -76,6 +77,10 @@ NAIVE_VS_STRAIGHTFORWARD_LIMIT = 0.9
 SOFT_STEP_LIMIT = 1.03
 GUIDED_LIMIT_B1 = 1.7
 GUIDED_LIMIT = 2.0
+
+# [B-3] The guided rows restrict their pull-back ([G-7]) when each of the two token groups it
+# evaluates has at least this many rows (batch * min(H - s, s)).
+RESTRICT_MIN_ROWS = 16
 
 
 # --------------------------------------------------------------------------- config
@@ -240,16 +245,37 @@ def _params(policy: FlowPolicy):
     return graphdef, treedef, tuple(leaves)
 
 
+def guided_tokens_for(method: str, H: int, s: int, batch: int) -> int | None:
+    """``guided_tokens`` of the benchmark's fast path: ``H - s`` or None (the full pull-back) ([B-3], [G-7]).
+
+    Only the guided methods restrict, and only when each token group of the
+    split evaluation ([P-18]) has at least :data:`RESTRICT_MIN_ROWS` rows,
+    ``batch * min(H - s, s) >= 16``. The split runs the last layers' matrix
+    products twice on half the rows; on XLA:CPU a product with few rows costs
+    about as much as one with twice as many, so with small batches the split
+    costs more forward time than the restricted backward saves.
+
+    >>> guided_tokens_for("inference_soft", 8, 4, 1), guided_tokens_for("inference_soft", 8, 4, 32)
+    (None, 4)
+    """
+    check_choice("method", method, tuple(dict.fromkeys(m for m, _, _ in CHUNK_ROWS.values())))
+    H = check_int("H", H, 2)
+    s = check_int("s", s, 1, H)
+    batch = check_int("batch", batch, 1)
+    if not method.startswith("inference_") or s == H or batch * min(H - s, s) < RESTRICT_MIN_ROWS:
+        return None
+    return H - s
+
+
 def _fast_fn(graphdef, treedef, method, window, s, T, H):
     # ``row`` is delay_rows(method, method_tables(...))[d], picked on the host: the delay
     # selects an input of fixed shape, so one compilation serves every delay.
-    # [G-7] Guidance weights vanish for j >= H - s, so the pull-back skips those tokens' last layers.
-    guided = H - s if method.startswith("inference_") and s < H else None
-
     def chunk(leaves, tables, obs, noise, prior, d):
         row, pullback = tables
         policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model = _Encoded(policy, policy.encode_obs(obs), pullback)
+        # [G-7] Guidance weights vanish for j >= H - s: with enough rows the pull-back skips those tokens' last layers.
+        guided = guided_tokens_for(method, H, s, obs.shape[0])
         return generate_chunk_from_row(method, model, obs, noise, prior, T, row, guided_tokens=guided)
     return jax.jit(chunk)
 
@@ -412,7 +438,8 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
                         "machine": platform.machine(), "python": platform.python_version()},
         "tolerance": {"atol": ATOL, "rtol": RTOL},
         "table_build_ms": {r.name: 1e3 * r.table_seconds for r in rows if r.path == "fast"},
-        "chunk": {}, "agreement": {}, "compilations": {}, "vjp_cost": {}, "train_step": None, "targets": []}
+        "chunk": {}, "agreement": {}, "compilations": {}, "vjp_cost": {}, "restricted_pullback": {},
+        "train_step": None, "targets": []}
     keys = [_row_key(r, config) for r in rows]
     result["rows"] = [{"key": k, "name": r.name, "method": r.method, "path": r.path, "label": r.label}
                       for k, r in zip(keys, rows)]
@@ -433,6 +460,8 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
         result["compilations"][str(B)] = {k: r.fn._cache_size() for k, r in zip(keys, rows)}
         say(f"batch {B}: timing one forward against one forward + VJP")
         result["vjp_cost"][str(B)] = _vjp_cost(config, policy, sets)
+        result["restricted_pullback"][str(B)] = guided_tokens_for(
+            "inference_soft", policy.action_chunk_size, config.execute_horizon, B) is not None
 
     if config.train_calls:
         say(f"training steps: {len(TRAIN_METHODS)} methods x {config.train_calls} calls at batch "
@@ -448,14 +477,14 @@ def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
 
     Both on the fast path (precomputed conditioning of step 0, observation
     encoded once); the VJP is the guided rows' own, restricted to the tokens
-    j < H - s ([G-7]) and multiplying by the stored transposed kernels
+    j < H - s where they restrict ([G-7], :func:`guided_tokens_for`) and multiplying by the stored transposed kernels
     ([P-19]). The ratio is what a guided Euler step costs relative to a naive
     one before any sampler overhead: a floor for the guided rows.
     """
     graphdef, treedef, state = _params(policy)
     cond = jax.tree.map(lambda a: a[0], naive_conditioning(policy, config.num_steps))
-    H = policy.action_chunk_size
-    head = H - config.execute_horizon if config.execute_horizon < H else None
+    head = guided_tokens_for("inference_soft", policy.action_chunk_size, config.execute_horizon,
+                             sets[0][0].shape[0])
 
     def merged(leaves, obs):
         p = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
@@ -583,8 +612,11 @@ def format_table(res: dict) -> str:
             if "naive/straightforward" in ch:
                 lines.append(f"  guided / straightforward naive, batch {b:<6s} "
                              f"{guided / ch['naive/straightforward']['median_ms']:>6.2f}x")
+            restricted = res.get("restricted_pullback", {}).get(b)
             lines.append(f"  one forward + VJP / one forward, batch {b:<4s} {vc['ratio']:>6.2f}x "
-                         f"({vc['forward_vjp_ms']:.3f} / {vc['forward_ms']:.3f} ms)")
+                         f"({vc['forward_vjp_ms']:.3f} / {vc['forward_ms']:.3f} ms)"
+                         + ("" if restricted is None else
+                            f"; pull-back {'restricted to j < H - s' if restricted else 'over all tokens'}"))
     ts = res.get("train_step")
     if ts:
         lines += ["", f"training step (batch {ts['batch']}, delays 0..{ts['d_max']}, "
