@@ -33,7 +33,7 @@ def test_rows_and_json_structure(result, tmp_path):
             assert st["calls"] == TINY["calls"]
             assert st["p10_ms"] <= st["median_ms"] <= st["p90_ms"]
     for key in ("config", "architecture", "environment", "agreement", "tolerance", "compilations",
-                "table_build_ms", "train_step", "targets", "seconds"):
+                "table_build_ms", "vjp_cost", "restricted_pullback", "train_step", "targets", "seconds"):
         assert key in result
     path = tmp_path / "sub" / "bench.json"
     bench.write_json(result, path)
