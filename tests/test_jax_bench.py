@@ -103,11 +103,11 @@ def test_guided_rows_restrict_the_pull_back_with_enough_rows(result):
     assert g("inference_soft", 8, 4, 1) is None and g("inference_hard", 8, 4, 3) is None
     assert g("inference_soft", 8, 4, 4) == 4 and g("inference_hard", 8, 4, 32) == 4
     assert g("inference_soft", 8, 6, 8) == 2 and g("inference_soft", 8, 6, 7) is None  # min(H - s, s) = 2
-    assert g("inference_soft", 8, 8, 32) is None  # s = H: nothing to restrict to
+    assert g("inference_soft", 8, 8, 32) is None and g("inference_soft", 1, 1, 32) is None  # s = H
     for method in ("naive", "train_hard", "train_soft"):
         assert g(method, 8, 4, 32) is None
     for args, word in [(("inference", 8, 4, 1), "method"), (("naive", 8, 9, 1), "s"), (("naive", 8, 4, 0), "batch"),
-                       (("naive", 1, 1, 1), "H"), (("naive", 8, 4, 2.0), "batch")]:
+                       (("naive", 0, 1, 1), "H"), (("naive", 8, 4, 2.0), "batch")]:
         with pytest.raises(ValueError, match=word):
             g(*args)
     # The tiny benchmark (H 8, s 4) runs batch 1 with the full pull-back and batch 4 with the restricted one,

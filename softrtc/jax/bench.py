@@ -259,12 +259,17 @@ def guided_tokens_for(method: str, H: int, s: int, batch: int) -> int | None:
     (None, 4)
     """
     check_choice("method", method, tuple(dict.fromkeys(m for m, _, _ in CHUNK_ROWS.values())))
-    H = check_int("H", H, 2)
+    H = check_int("H", H, 1)
     s = check_int("s", s, 1, H)
     batch = check_int("batch", batch, 1)
     if not method.startswith("inference_") or s == H or batch * min(H - s, s) < RESTRICT_MIN_ROWS:
         return None
     return H - s
+
+
+def _guided_head(policy: FlowPolicy, config: BenchConfig, batch: int) -> int | None:
+    """The guided rows' ``guided_tokens`` at this batch size (the same for hard and soft)."""
+    return guided_tokens_for("inference_soft", policy.action_chunk_size, config.execute_horizon, batch)
 
 
 def _fast_fn(graphdef, treedef, method, window, s, T, H):
@@ -460,8 +465,7 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
         result["compilations"][str(B)] = {k: r.fn._cache_size() for k, r in zip(keys, rows)}
         say(f"batch {B}: timing one forward against one forward + VJP")
         result["vjp_cost"][str(B)] = _vjp_cost(config, policy, sets)
-        result["restricted_pullback"][str(B)] = guided_tokens_for(
-            "inference_soft", policy.action_chunk_size, config.execute_horizon, B) is not None
+        result["restricted_pullback"][str(B)] = _guided_head(policy, config, B) is not None
 
     if config.train_calls:
         say(f"training steps: {len(TRAIN_METHODS)} methods x {config.train_calls} calls at batch "
@@ -483,8 +487,7 @@ def _vjp_cost(config: BenchConfig, policy: FlowPolicy, sets: list) -> dict:
     """
     graphdef, treedef, state = _params(policy)
     cond = jax.tree.map(lambda a: a[0], naive_conditioning(policy, config.num_steps))
-    head = guided_tokens_for("inference_soft", policy.action_chunk_size, config.execute_horizon,
-                             sets[0][0].shape[0])
+    head = _guided_head(policy, config, sets[0][0].shape[0])
 
     def merged(leaves, obs):
         p = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
