@@ -443,6 +443,49 @@ def test_layer_norm_custom_vjp_matches_autodiff():
     assert float(jnp.max(jnp.abs(want))) > 1e-3  # the gradient is not trivially zero
 
 
+def test_gelu_recomputing_vjp_matches_autodiff():
+    """P-20, P-14: the GELU with a recomputing VJP is bitwise nnx.gelu forward, and its gradient (alone, through
+    the policy in x, and in the parameters) agrees with autodiff of nnx.gelu."""
+    import jax
+
+    import softrtc.jax.policy as P
+
+    x = jnp.asarray(np.concatenate([np.linspace(-12.0, 12.0, 4001), [0.0, -0.5, 3e-4]]), jnp.float32)
+    assert np.array_equal(np.asarray(P.gelu(x)), np.asarray(nnx.gelu(x)))
+    got = jax.grad(lambda a: jnp.sum(P.gelu(a)))(x)
+    want = jax.grad(lambda a: jnp.sum(nnx.gelu(a)))(x)
+    # Near x = -5 both lose digits to 1 + tanh ~ 0 (float32): compare with the float64 derivative too.
+    xd = np.asarray(x, np.float64)
+    th = np.tanh(np.sqrt(2 / np.pi) * (xd + 0.044715 * xd ** 3))
+    exact = 0.5 * (1 + th) + 0.5 * xd * (1 - th ** 2) * np.sqrt(2 / np.pi) * (1 + 3 * 0.044715 * xd ** 2)
+    np.testing.assert_allclose(got, exact, rtol=1e-5, atol=5e-6)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    assert float(jnp.min(want)) < -0.1 and float(jnp.max(want)) > 1.1  # the derivative's dip and overshoot
+
+    rng = np.random.default_rng(20)
+    pol = _randomize(FlowPolicy(obs_dim=5, action_dim=2, config=TINY, rngs=nnx.Rngs(20)), 20)
+    obs = jnp.asarray(rng.standard_normal((3, 5)), jnp.float32)
+    xs = jnp.asarray(rng.standard_normal((3, TINY.action_chunk_size, 2)), jnp.float32)
+    t = jnp.asarray(rng.uniform(size=(3, TINY.action_chunk_size)), jnp.float32)
+    ct = jnp.asarray(rng.standard_normal(xs.shape), jnp.float32)
+    graphdef, params = nnx.split(pol)
+
+    def loss(prm, a):
+        return jnp.sum(nnx.merge(graphdef, prm)(obs, a, t) * ct)
+
+    got_x, got_p = jax.grad(loss, argnums=(1, 0))(params, xs)[0], jax.grad(loss)(params, xs)
+    orig = P.gelu
+    try:
+        P.gelu = nnx.gelu  # plain autodiff
+        want_x, want_p = jax.grad(loss, argnums=1)(params, xs), jax.grad(loss)(params, xs)
+    finally:
+        P.gelu = orig
+    np.testing.assert_allclose(got_x, want_x, rtol=1e-4, atol=1e-5)
+    assert float(jnp.max(jnp.abs(want_x))) > 1e-3
+    for a, b in zip(jax.tree.leaves(got_p), jax.tree.leaves(want_p)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
 _split = nnx.jit(lambda p, obs, x, cond, head: p.apply_conditioned_split(obs, x, cond, head), static_argnums=4)
 
 

@@ -315,15 +315,18 @@ def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row
     specs = [(name, config.path) for name in CHUNK_ROWS if name in names]
     if config.path == "fast":
         specs += [(name, "straightforward") for name in REFERENCE_ROWS if name in names]
-    rows = []
+    rows, kernels_t = [], None
     for name, path in specs:
         method, wspec, label = CHUNK_ROWS[name]
         window = _window(wspec)
         if path == "fast":
             t0 = time.perf_counter()
             per_delay = delay_rows(method, method_tables(method, policy, H, s, T, window))
-            # [P-19] The guided rows' VJP multiplies by transposed kernels, stored once per parameter set.
-            pullback = policy.pullback_kernels() if method.startswith("inference_") else None
+            # [P-19] The guided rows' VJP multiplies by transposed kernels, stored once per parameter set
+            # and shared by both guided rows.
+            if method.startswith("inference_") and kernels_t is None:
+                kernels_t = policy.pullback_kernels()
+            pullback = kernels_t if method.startswith("inference_") else None
             tables = jax.block_until_ready(tuple((row, pullback) for row in per_delay))
             secs = time.perf_counter() - t0
             fn = _fast_fn(graphdef, treedef, method, window, s, T, H)
