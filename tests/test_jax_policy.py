@@ -486,6 +486,23 @@ def test_gelu_recomputing_vjp_matches_autodiff():
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
 
 
+def test_gelu_and_layer_norm_validate_their_inputs():
+    """P-15: the custom-VJP building blocks name the argument and the allowed dtype or shape."""
+    from softrtc.jax.policy import gelu, layer_norm
+
+    with pytest.raises(ValueError, match="x must have a floating dtype"):
+        gelu(jnp.arange(3))
+    with pytest.raises(ValueError, match="x must have a floating dtype"):
+        gelu(jnp.array([True]))
+    norm = nnx.LayerNorm(4, use_scale=False, use_bias=False, rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match=r"x must have shape \[\.\.\., 4\]"):
+        layer_norm(norm, jnp.ones((2, 5)))
+    with pytest.raises(ValueError, match="norm must be an nnx.LayerNorm"):
+        layer_norm(lambda a: a, jnp.ones((2, 4)))
+    with pytest.raises(ValueError, match="x must have a floating dtype"):
+        layer_norm(norm, jnp.ones((2, 4), jnp.int32))
+
+
 _split = nnx.jit(lambda p, obs, x, cond, head: p.apply_conditioned_split(obs, x, cond, head), static_argnums=4)
 
 

@@ -163,7 +163,16 @@ def layer_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
     ``r = 1 / sqrt(var + eps)``: two means, taken as one matrix product,
     where autodiff of the module's statistics emits several reduction kernels
     (each guided sampler step runs nine of these backwards).
+
+    ``norm`` must be an ``nnx.LayerNorm`` and ``x`` a floating array whose last
+    axis has its ``num_features`` entries ([P-15]).
     """
+    if not isinstance(norm, nnx.LayerNorm):
+        raise ValueError(f"norm must be an nnx.LayerNorm, got {type(norm).__name__}")
+    x = _as_float_array("x", x)
+    if x.ndim < 1 or x.shape[-1] != norm.num_features:
+        raise ValueError(f"x must have shape [..., {norm.num_features}] (the norm's num_features), "
+                         f"got {tuple(x.shape)}")
 
     @jax.custom_vjp
     def ln(x):
@@ -193,7 +202,6 @@ _SQRT_2_OVER_PI = float(np.sqrt(2.0 / np.pi))
 _GELU_CUBIC = 0.044715
 
 
-@jax.custom_vjp
 def gelu(x: jax.Array) -> jax.Array:
     """``nnx.gelu(x)`` (tanh approximation) whose VJP recomputes ``tanh`` from ``x`` [P-20].
 
@@ -205,9 +213,16 @@ def gelu(x: jax.Array) -> jax.Array:
     it out in a kernel of its own: one more pass over the largest activations
     (the token-mixing hidden layer, ``[B, C, 64]``) per layer and step.
 
+    ``x`` is a floating array of any shape ([P-15]).
+
     >>> round(float(gelu(jnp.float32(1.0))), 4)
     0.8412
     """
+    return _gelu(_as_float_array("x", x))
+
+
+@jax.custom_vjp
+def _gelu(x: jax.Array) -> jax.Array:
     return nnx.gelu(x)
 
 
@@ -224,7 +239,7 @@ def _gelu_bwd(x, g):
     return (g * d,)
 
 
-gelu.defvjp(_gelu_fwd, _gelu_bwd)
+_gelu.defvjp(_gelu_fwd, _gelu_bwd)
 
 
 _BLOCK_LINEARS = ("token_mix_in", "token_mix_out", "channel_mix_in", "channel_mix_out")
