@@ -195,3 +195,37 @@ def test_delay_rows_match_traced_delay_tables():
     import pytest
     with pytest.raises(ValueError, match="row must be"):
         JM.generate_chunk_from_row("train_soft", pol, obs, noise, prior, 3, {"weights": 0})
+
+
+def test_vjp_ablation_cli_end_to_end(tmp_path, capsys):
+    """B-12, G-7, P-17, P-19, P-20: `softrtc bench vjp` compiles every variant of the guided row, checks its
+    chunks against the shipped ones, times them against naive, prints the table and writes JSON."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    jax_cli.add_subparsers(parser.add_subparsers(dest="command"))
+    assert parser.parse_args(["bench", "vjp"]).out == "runs/bench_vjp.json"
+    out = tmp_path / "vjp.json"
+    args = parser.parse_args(["bench", "vjp", "--arch", "tiny", "--batch-sizes", "1,4", "--calls", "2",
+                              "--warmup", "1", "--steps", "2", "--out", str(out)])
+    assert args.func(args) == 0
+    printed = capsys.readouterr().out
+    for label, *_ in bench.VJP_VARIANTS.values():
+        assert printed.count(label) == 2  # one line per batch size
+    res = json.loads(out.read_text())
+    assert set(res["variants"]) == set(bench.VJP_VARIANTS)
+    for b, rule in (("1", False), ("4", True)):  # batch * min(H - s, s) >= 16 from batch 4 on ([B-3])
+        flags = res["restricted_pullback"][b]
+        assert flags["shipped"] is rule and flags["other_pullback"] is (not rule) and not flags["plain_autodiff"]
+        assert all(a["ok"] for a in res["agreement"][b].values())
+        assert res["agreement"][b]["shipped"]["max_abs_diff"] == 0.0
+        # The other variants compute differently (autodiff, transposes, token groups): not bitwise the same.
+        assert res["agreement"][b]["plain_autodiff"]["max_abs_diff"] > 0.0
+        ch = res["chunk"][b]
+        assert ch["naive"]["ratio"] == 1.0 and ch["shipped"]["over_shipped"] == 1.0
+        assert all(ch[k]["calls"] == 2 for k in ch)
+    bad = parser.parse_args(["bench", "vjp", "--arch", "tiny", "--calls", "0"])
+    assert jax_cli.run_vjp(bad) == 2
+    assert "calls" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="run_vjp_ablation"):
+        bench.format_vjp_table({})

@@ -433,12 +433,8 @@ def test_layer_norm_custom_vjp_matches_autodiff():
     got = jax.vjp(lambda a: pol(obs, a, t), xs)[1](ct)[0]
     import softrtc.jax.policy as P
 
-    orig = P.layer_norm
-    try:
-        P.layer_norm = lambda norm, a: norm(a)  # plain autodiff of the flax module
+    with P.autodiff_vjps(layer_norm=True):  # plain autodiff of the flax module
         want = jax.vjp(lambda a: pol(obs, a, t), xs)[1](ct)[0]
-    finally:
-        P.layer_norm = orig
     np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
     assert float(jnp.max(jnp.abs(want))) > 1e-3  # the gradient is not trivially zero
 
@@ -474,16 +470,44 @@ def test_gelu_recomputing_vjp_matches_autodiff():
         return jnp.sum(nnx.merge(graphdef, prm)(obs, a, t) * ct)
 
     got_x, got_p = jax.grad(loss, argnums=(1, 0))(params, xs)[0], jax.grad(loss)(params, xs)
-    orig = P.gelu
-    try:
-        P.gelu = nnx.gelu  # plain autodiff
+    with P.autodiff_vjps(gelu=True):  # plain autodiff of nnx.gelu
         want_x, want_p = jax.grad(loss, argnums=1)(params, xs), jax.grad(loss)(params, xs)
-    finally:
-        P.gelu = orig
     np.testing.assert_allclose(got_x, want_x, rtol=1e-4, atol=1e-5)
     assert float(jnp.max(jnp.abs(want_x))) > 1e-3
     for a, b in zip(jax.tree.leaves(got_p), jax.tree.leaves(want_p)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
+def test_autodiff_vjps_switches_blocks_only_while_tracing_and_restores():
+    """B-12, P-17, P-20: the ablation switch changes how the blocks are differentiated (the compiled VJP
+    differs), not their values, is restored on exit and on error, and takes bools only."""
+    import jax
+
+    import softrtc.jax.policy as P
+
+    pol = _randomize(FlowPolicy(obs_dim=5, action_dim=2, config=TINY, rngs=nnx.Rngs(22)), 22)
+    obs = jnp.ones((1, 5), jnp.float32)
+    xs = jnp.ones((1, TINY.action_chunk_size, 2), jnp.float32)
+    t = jnp.full((1, TINY.action_chunk_size), 0.4)
+
+    def vjp_hlo():
+        f = jax.jit(lambda a: jax.vjp(lambda b: pol(obs, b, t), a)[1](a)[0])
+        return f.lower(xs).as_text(), f(xs)
+
+    shipped, g0 = vjp_hlo()
+    with P.autodiff_vjps(layer_norm=True, gelu=True):
+        plain, g1 = vjp_hlo()
+        assert P._AUTODIFF == {"layer_norm": True, "gelu": True}
+    assert shipped != plain  # e.g. the closed-form LayerNorm backward's product is gone
+    np.testing.assert_allclose(g0, g1, rtol=1e-4, atol=1e-5)
+    assert P._AUTODIFF == {"layer_norm": False, "gelu": False}
+    with pytest.raises(RuntimeError, match="inside"):
+        with P.autodiff_vjps(gelu=True):
+            raise RuntimeError("inside")
+    assert P._AUTODIFF == {"layer_norm": False, "gelu": False}
+    with pytest.raises(ValueError, match="gelu must be a bool"):
+        with P.autodiff_vjps(gelu=1):
+            pass
 
 
 def test_gelu_and_layer_norm_validate_their_inputs():

@@ -43,6 +43,9 @@ __all__ = [
     "build_rows",
     "guided_tokens_for",
     "run_benchmark",
+    "run_vjp_ablation",
+    "format_vjp_table",
+    "VJP_VARIANTS",
     "format_table",
     "write_json",
 ]
@@ -272,16 +275,17 @@ def _guided_head(policy: FlowPolicy, config: BenchConfig, batch: int) -> int | N
     return guided_tokens_for("inference_soft", policy.action_chunk_size, config.execute_horizon, batch)
 
 
-def _fast_fn(graphdef, treedef, method, window, s, T, H):
+def _fast_fn(graphdef, treedef, method, window, s, T, H, guided="rule"):
     # ``row`` is delay_rows(method, method_tables(...))[d], picked on the host: the delay
     # selects an input of fixed shape, so one compilation serves every delay.
+    # ``guided`` is "rule" (guided_tokens_for at the traced batch size) or an explicit guided_tokens.
     def chunk(leaves, tables, obs, noise, prior, d):
         row, pullback = tables
         policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         model = _Encoded(policy, policy.encode_obs(obs), pullback)
         # [G-7] Guidance weights vanish for j >= H - s: with enough rows the pull-back skips those tokens' last layers.
-        guided = guided_tokens_for(method, H, s, obs.shape[0])
-        return generate_chunk_from_row(method, model, obs, noise, prior, T, row, guided_tokens=guided)
+        tokens = guided_tokens_for(method, H, s, obs.shape[0]) if guided == "rule" else guided
+        return generate_chunk_from_row(method, model, obs, noise, prior, T, row, guided_tokens=tokens)
     return jax.jit(chunk)
 
 
@@ -584,6 +588,130 @@ def _targets(config: BenchConfig, res: dict) -> list[dict]:
     return out
 
 
+# --------------------------------------------------------------------------- pull-back ablation
+
+# [B-12] Variants of the guided soft row: label, LayerNorm VJP by autodiff ([P-17] off), GELU VJP by
+# autodiff ([P-20] off), stored transposed kernels ([P-19]), pull-back ("rule" = guided_tokens_for,
+# "flip" = the other choice, "full" = over all tokens, [G-7]).
+VJP_VARIANTS = {
+    "shipped": ("as shipped", False, False, True, "rule"),
+    "layer_norm_autodiff": ("LayerNorm VJP by autodiff", True, False, True, "rule"),
+    "gelu_autodiff": ("GELU VJP by autodiff", False, True, True, "rule"),
+    "no_stored_transposes": ("no stored transposes", False, False, False, "rule"),
+    "other_pullback": ("the other pull-back", False, False, True, "flip"),
+    "plain_autodiff": ("plain autodiff, full pull-back", True, True, False, "full"),
+}
+
+
+def _variant_tokens(choice: str, rule: int | None, H: int, s: int) -> int | None:
+    if choice == "rule":
+        return rule
+    if choice == "full" or s == H:
+        return None
+    return H - s if rule is None else None
+
+
+def run_vjp_ablation(config: BenchConfig = BenchConfig(), *,
+                     progress: Callable[[str], None] | None = None) -> dict:
+    """Each design choice of the guided pull-back against the shipped one, side by side ([B-12]).
+
+    The guided soft row (``inference_soft``, fast path) is compiled once per
+    variant of :data:`VJP_VARIANTS` and batch size, its chunks are compared
+    with the shipped variant's at every delay (they MUST agree within the
+    tolerance of [B-5]), and all variants and the naive row are timed
+    interleaved as in [B-6]. Uses ``calls``, ``warmup``, ``batch_sizes``,
+    ``delay``, ``seed``, ``num_steps``, ``execute_horizon`` and ``arch`` of
+    ``config``; the path is always the fast one.
+    """
+    if not isinstance(config, BenchConfig):
+        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
+    if progress is not None and not callable(progress):
+        raise ValueError("progress must be callable with one string argument, or None")
+    from .policy import autodiff_vjps
+
+    say = progress or (lambda msg: None)
+    t_start = time.perf_counter()
+    config = dataclasses.replace(config, path="fast")
+    policy = make_policy(config)
+    graphdef, treedef, state = _params(policy)
+    H, s, T = policy.action_chunk_size, config.execute_horizon, config.num_steps
+    method, wspec, _ = CHUNK_ROWS["inference_soft"]
+    window = _window(wspec)
+    per_delay = delay_rows(method, method_tables(method, policy, H, s, T, window))
+    kernels_t = policy.pullback_kernels()
+    naive = [r for r in build_rows(config, policy, ("naive",)) if r.path == "fast"][0]
+    delays = [jnp.asarray(d, jnp.int32) for d in config.delays]
+    result: dict = {
+        "config": dataclasses.asdict(config),
+        "environment": {"jax": jax.__version__, "backend": jax.default_backend(), "cpu_count": os.cpu_count()},
+        "tolerance": {"atol": ATOL, "rtol": RTOL},
+        "variants": {k: {"label": v[0], "layer_norm_autodiff": v[1], "gelu_autodiff": v[2],
+                         "stored_transposes": v[3], "pullback": v[4]} for k, v in VJP_VARIANTS.items()},
+        "chunk": {}, "agreement": {}, "restricted_pullback": {}}
+    for B in config.batch_sizes:
+        sets = _inputs(config, policy, B, 4)
+        rule = guided_tokens_for(method, H, s, B)
+        fns, tables = {}, {}
+        say(f"batch {B}: compiling {len(VJP_VARIANTS)} variants of the guided soft row")
+        for key, (_, ln, ge, stored, choice) in VJP_VARIANTS.items():
+            tokens = _variant_tokens(choice, rule, H, s)
+            tables[key] = tuple((row, kernels_t if stored else None) for row in per_delay)
+            fn = _fast_fn(graphdef, treedef, method, window, s, T, H, guided=tokens)
+            # The switch acts while tracing, so lower and compile inside it.
+            with autodiff_vjps(layer_norm=ln, gelu=ge):
+                fns[key] = fn.lower(state, tables[key][0], *sets[0], delays[0]).compile()
+            result["restricted_pullback"].setdefault(str(B), {})[key] = tokens is not None
+        agree, obs, noise, prior = {}, *sets[0]
+        want = [np.asarray(fns["shipped"](state, tables["shipped"][int(d)], obs, noise, prior, d)) for d in delays]
+        for key in VJP_VARIANTS:
+            worst, ok = 0.0, True
+            for d, b in zip(delays, want):
+                a = np.asarray(fns[key](state, tables[key][int(d)], obs, noise, prior, d))
+                worst = max(worst, float(np.max(np.abs(a - b))))
+                ok = ok and bool(np.all(np.abs(a - b) <= ATOL + RTOL * np.abs(b)))
+            agree[key] = {"max_abs_diff": worst, "ok": ok}
+        result["agreement"][str(B)] = agree
+
+        def call(fn, tabs):
+            return lambda i: fn(state, tabs[int(delays[i % len(delays)])], *sets[i % len(sets)],
+                                delays[i % len(delays)])
+
+        timed = {"naive": lambda i: naive.fn(state, naive.tables_for(delays[i % len(delays)]),
+                                             *sets[i % len(sets)], delays[i % len(delays)])}
+        timed.update({k: call(fns[k], tables[k]) for k in VJP_VARIANTS})
+        say(f"batch {B}: timing naive and {len(VJP_VARIANTS)} variants x {config.calls} calls")
+        times = _time_round_robin(timed, config.calls, config.warmup, config.seed)
+        stats = {k: _stats(times[k], times["naive"]) for k in timed}
+        shipped = statistics.median(times["shipped"])
+        for k in VJP_VARIANTS:
+            stats[k]["over_shipped"] = statistics.median(times[k]) / shipped
+        result["chunk"][str(B)] = stats
+    result["seconds"] = time.perf_counter() - t_start
+    return result
+
+
+def format_vjp_table(res: dict) -> str:
+    """The printed table of [B-12]: per batch size, every variant's median, ratio to naive and to shipped."""
+    if not isinstance(res, dict) or "variants" not in res or "chunk" not in res:
+        raise ValueError("res must be a result of run_vjp_ablation")
+    cfg = res["config"]
+    lines = [f"softrtc bench vjp: guided soft RTC (fast path), {cfg['arch']} network, s {cfg['execute_horizon']}, "
+             f"T {cfg['num_steps']}; median of {cfg['calls']} interleaved calls after {cfg['warmup']} warm-up "
+             f"rounds; {res['environment']['backend']} ({res['environment']['cpu_count']} cores), "
+             f"jax {res['environment']['jax']}"]
+    for b, stats in res["chunk"].items():
+        head = f"{'variant':<32s} {'pull-back':<10s} {'ms':>9s} {'/naive':>7s} {'/shipped':>9s} {'max|v-shipped|':>15s}"
+        lines += ["", f"batch {b}", head, "-" * len(head),
+                  f"{'naive (base policy)':<32s} {'-':<10s} {stats['naive']['median_ms']:>9.3f} {1.0:>6.2f}x"]
+        for k, v in res["variants"].items():
+            st, ag = stats[k], res["agreement"][b][k]
+            pb = "j < H - s" if res["restricted_pullback"][b][k] else "all"
+            lines.append(f"{v['label']:<32s} {pb:<10s} {st['median_ms']:>9.3f} {st['ratio']:>6.2f}x "
+                         f"{st['over_shipped']:>8.3f}x {ag['max_abs_diff']:>10.1e} {'ok' if ag['ok'] else 'FAIL'}")
+    lines.append(f"total {res['seconds']:.0f} s")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------------- output
 
 
@@ -649,9 +777,9 @@ def _delays_of(cfg: dict) -> list:
 
 
 def write_json(res: dict, path: str | os.PathLike) -> None:
-    """Write the result of :func:`run_benchmark` as JSON ([B-10]); creates the parent folder."""
+    """Write the result of :func:`run_benchmark` ([B-10]) or :func:`run_vjp_ablation` ([B-12]) as JSON; creates the parent folder."""
     if not isinstance(res, dict) or "chunk" not in res:
-        raise ValueError("res must be a result of run_benchmark")
+        raise ValueError("res must be a result of run_benchmark or run_vjp_ablation")
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise ValueError(f"path must be a file path, got {path!r}")
     parent = os.path.dirname(os.fspath(path))

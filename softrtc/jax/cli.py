@@ -1,7 +1,7 @@
-"""`softrtc bench runtime` and the JAX step of `softrtc demo`; registered by softrtc/cli.py.
+"""`softrtc bench runtime`, `softrtc bench vjp` and the JAX step of `softrtc demo`; registered by softrtc/cli.py.
 
-``add_subparsers(subparsers)`` adds ``bench`` with the subcommand ``runtime``
-(spec/32-runtime-bench.md, chapter B). ``demo()`` is a quick check of the JAX
+``add_subparsers(subparsers)`` adds ``bench`` with the subcommands ``runtime``
+and ``vjp`` (spec/32-runtime-bench.md, chapter B). ``demo()`` is a quick check of the JAX
 twin: the conformance vectors of the samplers and guidance against the JAX
 adapter, and fast against straightforward chunks of a small flow policy.
 """
@@ -37,7 +37,7 @@ def _delay(text: str):
 
 
 def add_subparsers(subparsers) -> None:
-    """Register `bench runtime` ([B-1], [B-10])."""
+    """Register `bench runtime` ([B-1], [B-10]) and `bench vjp` ([B-12])."""
     bench = subparsers.add_parser("bench", help="benchmarks of the JAX implementation")
     sub = bench.add_subparsers(dest="bench_command", metavar="SUBCOMMAND")
     bench.set_defaults(func=lambda args: (bench.print_help(), 2)[1])
@@ -63,6 +63,21 @@ def add_subparsers(subparsers) -> None:
     rt.add_argument("--out", default="runs/bench_runtime.json", help="JSON output (default runs/bench_runtime.json)")
     rt.add_argument("--strict", action="store_true", help="exit with status 1 when a timing target fails")
     rt.set_defaults(func=run_runtime)
+    vj = sub.add_parser(
+        "vjp", help="each design choice of the guided samplers' pull-back against the shipped one, side by side "
+                    "(spec/32-runtime-bench.md, [B-12])")
+    vj.add_argument("--calls", type=int, default=200, help="timed calls per variant and batch size (default 200)")
+    vj.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation (default 5)")
+    vj.add_argument("--batch-sizes", type=_batch_sizes, default=(1, 32), help="comma-separated (default 1,32)")
+    vj.add_argument("--delay", type=_delay, default=None,
+                    help="'rotate' (default: d = 0 .. min(s, H - s) in turn across calls) or a fixed delay")
+    vj.add_argument("--seed", type=int, default=0, help="seed of the policy parameters and inputs (default 0)")
+    vj.add_argument("--steps", type=int, default=5, help="Euler steps T (default 5)")
+    vj.add_argument("--execute-horizon", type=int, default=4, help="execute horizon s (default 4)")
+    vj.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark",
+                    help="policy size: the benchmark's (obs 679, action 6, H 8; default) or a tiny smoke-test one")
+    vj.add_argument("--out", default="runs/bench_vjp.json", help="JSON output (default runs/bench_vjp.json)")
+    vj.set_defaults(func=run_vjp)
 
 
 def run_runtime(args) -> int:
@@ -90,6 +105,30 @@ def run_runtime(args) -> int:
     agree = all(t["pass"] for t in res["targets"] if t["id"] == "B-5")
     timing = all(t["pass"] for t in res["targets"] if t["id"] != "B-5")
     return 0 if agree and (timing or not args.strict) else 1
+
+
+def run_vjp(args) -> int:
+    """Exit status: 0 done, 1 a variant's chunks disagree with the shipped ones, 2 invalid options ([B-12])."""
+    from . import bench
+
+    try:
+        config = bench.BenchConfig(
+            calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,
+            seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, train_calls=0,
+            arch=args.arch)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    res = bench.run_vjp_ablation(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
+    print(bench.format_vjp_table(res))
+    if args.out:
+        try:
+            bench.write_json(res, args.out)
+        except OSError as exc:
+            print(f"error: cannot write {args.out}: {exc}", file=sys.stderr)
+            return 2
+        print(f"wrote {args.out}")
+    return 0 if all(a["ok"] for per_b in res["agreement"].values() for a in per_b.values()) else 1
 
 
 def demo() -> int:

@@ -21,6 +21,7 @@ Worked example (tiny sizes)::
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import pickle
@@ -242,6 +243,44 @@ def _gelu_bwd(x, g):
 _gelu.defvjp(_gelu_fwd, _gelu_bwd)
 
 
+# Building blocks differentiated by plain autodiff instead of their hand-written VJPs ([P-17], [P-20]);
+# read while a policy function is traced, set only by `autodiff_vjps`.
+_AUTODIFF = {"layer_norm": False, "gelu": False}
+
+
+@contextlib.contextmanager
+def autodiff_vjps(*, layer_norm: bool = False, gelu: bool = False):
+    """Trace policy functions with plain autodiff for the chosen blocks, for ablations ([B-12]).
+
+    Inside the ``with`` block, policy functions traced (jitted, lowered) use
+    ``norm(x)`` instead of :func:`layer_norm`'s closed-form VJP ([P-17]) when
+    ``layer_norm`` is True, and ``nnx.gelu`` instead of :func:`gelu`'s
+    recomputing VJP ([P-20]) when ``gelu`` is True. Forward values are the
+    same; functions compiled before or after the block are unaffected. Not
+    thread-safe: it sets module state for the duration of the block.
+
+    >>> with autodiff_vjps(gelu=True):
+    ...     pass  # e.g. jax.jit(f).lower(...).compile()
+    """
+    for name, value in (("layer_norm", layer_norm), ("gelu", gelu)):
+        if not isinstance(value, bool):
+            raise ValueError(f"{name} must be a bool, got {value!r}")
+    saved = dict(_AUTODIFF)
+    _AUTODIFF.update(layer_norm=layer_norm, gelu=gelu)
+    try:
+        yield
+    finally:
+        _AUTODIFF.update(saved)
+
+
+def _block_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
+    return norm(x) if _AUTODIFF["layer_norm"] else layer_norm(norm, x)
+
+
+def _block_gelu(x: jax.Array) -> jax.Array:
+    return nnx.gelu(x) if _AUTODIFF["gelu"] else gelu(x)
+
+
 _BLOCK_LINEARS = ("token_mix_in", "token_mix_out", "channel_mix_in", "channel_mix_out")
 
 
@@ -319,9 +358,9 @@ class MLPMixerBlock(nnx.Module):
         # Split order (scale, shift, gate) is fixed by the released checkpoints [P-4].
         scale_1, shift_1, gate_1 = jnp.split(m1, 3, axis=-1)
         # Token mixing acts along H, so the per-token modulation is applied before it.
-        y = layer_norm(self.norm_1, x) * (1 + scale_1) + shift_1
+        y = _block_norm(self.norm_1, x) * (1 + scale_1) + shift_1
         y = jnp.swapaxes(y, -1, -2)
-        y = _linear(self.token_mix_out, gelu(_linear(self.token_mix_in, y, pb.get("token_mix_in"))),
+        y = _linear(self.token_mix_out, _block_gelu(_linear(self.token_mix_in, y, pb.get("token_mix_in"))),
                     pb.get("token_mix_out"))
         return x + gate_1 * jnp.swapaxes(y, -1, -2)
 
@@ -332,8 +371,8 @@ class MLPMixerBlock(nnx.Module):
         """
         pb = pullback or {}
         scale_2, shift_2, gate_2 = jnp.split(m2, 3, axis=-1)
-        y = layer_norm(self.norm_2, x) * (1 + scale_2) + shift_2
-        y = _linear(self.channel_mix_out, gelu(_linear(self.channel_mix_in, y, pb.get("channel_mix_in"))),
+        y = _block_norm(self.norm_2, x) * (1 + scale_2) + shift_2
+        y = _linear(self.channel_mix_out, _block_gelu(_linear(self.channel_mix_in, y, pb.get("channel_mix_in"))),
                     pb.get("channel_mix_out"))
         return x + gate_2 * y
 
@@ -586,7 +625,7 @@ class FlowPolicy(nnx.Module):
         """The per-token layers: last block's channel mixing, final modulated LayerNorm, output projection."""
         hdn = self.mlp_stack[-1].channel_mixing(hdn, m2, last)
         scale, shift = jnp.split(fin, 2, axis=-1)
-        hdn = layer_norm(self.final_norm, hdn) * (1 + scale) + shift
+        hdn = _block_norm(self.final_norm, hdn) * (1 + scale) + shift
         return _linear(self.out_proj, hdn, out_t)
 
     def apply_conditioned_split(self, obs: Any, x: Any, cond: Mapping[str, Any], head: int, *,
