@@ -36,6 +36,21 @@ def _delay(text: str):
     return d
 
 
+def _common_options(parser, noun: str, out: str) -> None:
+    """Options that `bench runtime` and `bench vjp` share, with the same meaning ([B-10], [B-12])."""
+    parser.add_argument("--calls", type=int, default=200, help=f"timed calls per {noun} and batch size (default 200)")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation (default 5)")
+    parser.add_argument("--batch-sizes", type=_batch_sizes, default=(1, 32), help="comma-separated (default 1,32)")
+    parser.add_argument("--delay", type=_delay, default=None,
+                        help="'rotate' (default: d = 0 .. min(s, H - s) in turn across calls) or a fixed delay")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the policy parameters and inputs (default 0)")
+    parser.add_argument("--steps", type=int, default=5, help="Euler steps T (default 5)")
+    parser.add_argument("--execute-horizon", type=int, default=4, help="execute horizon s (default 4)")
+    parser.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark",
+                        help="policy size: the benchmark's (obs 679, action 6, H 8; default) or a tiny smoke-test one")
+    parser.add_argument("--out", default=out, help=f"JSON output (default {out})")
+
+
 def add_subparsers(subparsers) -> None:
     """Register `bench runtime` ([B-1], [B-10]) and `bench vjp` ([B-12])."""
     bench = subparsers.add_parser("bench", help="benchmarks of the JAX implementation")
@@ -44,57 +59,39 @@ def add_subparsers(subparsers) -> None:
     rt = sub.add_parser(
         "runtime", help="chunk-generation latency per method (ratio to naive) and training-step time "
                         "(spec/32-runtime-bench.md)")
-    rt.add_argument("--calls", type=int, default=200, help="timed calls per row and batch size (default 200)")
-    rt.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation (default 5)")
-    rt.add_argument("--batch-sizes", type=_batch_sizes, default=(1, 32), help="comma-separated (default 1,32)")
-    rt.add_argument("--delay", type=_delay, default=None,
-                    help="'rotate' (default: d = 0 .. min(s, H - s) in turn across calls) or a fixed delay")
-    rt.add_argument("--seed", type=int, default=0, help="seed of the policy parameters and inputs (default 0)")
-    rt.add_argument("--steps", type=int, default=5, help="Euler steps T (default 5)")
-    rt.add_argument("--execute-horizon", type=int, default=4, help="execute horizon s (default 4)")
+    _common_options(rt, "row", "runs/bench_runtime.json")
     rt.add_argument("--path", choices=("fast", "straightforward"), default="fast",
                     help="implementation of the method rows (default fast; the straightforward naive and "
                          "train-soft samplers are measured as rows of their own either way)")
     rt.add_argument("--train-batch", type=int, default=32, help="batch size of the training steps (default 32)")
     rt.add_argument("--train-calls", type=int, default=50,
                     help="timed training steps per method (default 50; 0 skips them)")
-    rt.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark",
-                    help="policy size: the benchmark's (obs 679, action 6, H 8; default) or a tiny smoke-test one")
-    rt.add_argument("--out", default="runs/bench_runtime.json", help="JSON output (default runs/bench_runtime.json)")
     rt.add_argument("--strict", action="store_true", help="exit with status 1 when a timing target fails")
     rt.set_defaults(func=run_runtime)
     vj = sub.add_parser(
         "vjp", help="each design choice of the guided samplers' pull-back against the shipped one, side by side "
                     "(spec/32-runtime-bench.md, [B-12])")
-    vj.add_argument("--calls", type=int, default=200, help="timed calls per variant and batch size (default 200)")
-    vj.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation (default 5)")
-    vj.add_argument("--batch-sizes", type=_batch_sizes, default=(1, 32), help="comma-separated (default 1,32)")
-    vj.add_argument("--delay", type=_delay, default=None,
-                    help="'rotate' (default: d = 0 .. min(s, H - s) in turn across calls) or a fixed delay")
-    vj.add_argument("--seed", type=int, default=0, help="seed of the policy parameters and inputs (default 0)")
-    vj.add_argument("--steps", type=int, default=5, help="Euler steps T (default 5)")
-    vj.add_argument("--execute-horizon", type=int, default=4, help="execute horizon s (default 4)")
-    vj.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark",
-                    help="policy size: the benchmark's (obs 679, action 6, H 8; default) or a tiny smoke-test one")
-    vj.add_argument("--out", default="runs/bench_vjp.json", help="JSON output (default runs/bench_vjp.json)")
+    _common_options(vj, "variant", "runs/bench_vjp.json")
     vj.set_defaults(func=run_vjp)
 
 
-def run_runtime(args) -> int:
-    """Exit status: 0 done (timing targets only count with --strict), 1 paths disagree or strict failure,
-    2 invalid options ([B-10])."""
+def _run(args, run, fmt, **extra):
+    """Build the BenchConfig from ``args``, run, print the table and write the JSON.
+
+    Returns the result, or the exit status 2 when the options are invalid or
+    the JSON cannot be written ([B-10]).
+    """
     from . import bench
 
     try:
         config = bench.BenchConfig(
             calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,
-            seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, path=args.path,
-            train_batch=args.train_batch, train_calls=args.train_calls, arch=args.arch)
+            seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, arch=args.arch, **extra)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    res = bench.run_benchmark(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
-    print(bench.format_table(res))
+    res = run(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
+    print(fmt(res))
     if args.out:
         try:
             bench.write_json(res, args.out)
@@ -102,6 +99,18 @@ def run_runtime(args) -> int:
             print(f"error: cannot write {args.out}: {exc}", file=sys.stderr)
             return 2
         print(f"wrote {args.out}")
+    return res
+
+
+def run_runtime(args) -> int:
+    """Exit status: 0 done (timing targets only count with --strict), 1 paths disagree or strict failure,
+    2 invalid options ([B-10])."""
+    from . import bench
+
+    res = _run(args, bench.run_benchmark, bench.format_table, path=args.path, train_batch=args.train_batch,
+               train_calls=args.train_calls)
+    if isinstance(res, int):
+        return res
     agree = all(t["pass"] for t in res["targets"] if t["id"] == "B-5")
     timing = all(t["pass"] for t in res["targets"] if t["id"] != "B-5")
     return 0 if agree and (timing or not args.strict) else 1
@@ -111,23 +120,9 @@ def run_vjp(args) -> int:
     """Exit status: 0 done, 1 a variant's chunks disagree with the shipped ones, 2 invalid options ([B-12])."""
     from . import bench
 
-    try:
-        config = bench.BenchConfig(
-            calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,
-            seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, train_calls=0,
-            arch=args.arch)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    res = bench.run_vjp_ablation(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
-    print(bench.format_vjp_table(res))
-    if args.out:
-        try:
-            bench.write_json(res, args.out)
-        except OSError as exc:
-            print(f"error: cannot write {args.out}: {exc}", file=sys.stderr)
-            return 2
-        print(f"wrote {args.out}")
+    res = _run(args, bench.run_vjp_ablation, bench.format_vjp_table, train_calls=0)
+    if isinstance(res, int):
+        return res
     return 0 if all(a["ok"] for per_b in res["agreement"].values() for a in per_b.values()) else 1
 
 
