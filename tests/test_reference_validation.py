@@ -141,3 +141,16 @@ def test_reference_imports_in_numpy_only_venv(tmp_path):
                          capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[1.0, 0.6666666666666667, 0.33333333333333337, 0.0]"
+
+
+def test_cli_stops_quietly_when_its_reader_goes_away():
+    """`softrtc examples | head -1` must not end in a traceback: a closed stdout exits with 128 + SIGPIPE.
+
+    The read end is closed before the child has imported anything, so its first write meets a closed pipe.
+    """
+    proc = subprocess.Popen([sys.executable, "-m", "softrtc.cli", "examples"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
