@@ -58,6 +58,13 @@ def _endpoint_floor(self, rule, d):
     return r
 
 
+def _endpoint_float_ceil(self, rule, d):
+    r = ReferenceAdapter.endpoint(self, rule, d)
+    if rule.get("kind") == "delay_scaled" and d > 0:
+        return min(math.ceil(rule["lam"] * d), rule["h_max"])  # float64 product, no delta ([E-2])
+    return r
+
+
 def _loss_no_normalizer(self, pred, actions, noise, w):
     m = 1.0 - np.asarray(w)
     return float(np.sum(m * loss.token_errors(pred, actions, noise)))
@@ -194,6 +201,7 @@ MUTANTS = {
     "prefix not clamped when e < d": ("weights", _weights_end_wins),
     "overflow clip ignored": ("weights", _weights_clip_ignored),
     "endpoint floor instead of ceil": ("endpoint", _endpoint_floor),
+    "endpoint ceil of the float product": ("endpoint", _endpoint_float_ceil),
     "loss without normalizer": ("loss", _loss_no_normalizer),
     "loss without eta": ("loss", _loss_no_eta),
     "loss mean instead of sum over action dim": ("loss", _loss_mean_over_actions),

@@ -1,6 +1,7 @@
 """Endpoints and token weights of the reference (spec/01-weights.md)."""
 
 import math
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -66,17 +67,22 @@ def test_endpoint_rules_worked_examples():
         assert E.endpoint(rule, 0) == 0
 
 
-def test_delay_scaled_ceil_is_exact():
-    """E-2: the ceiling is exact on the float's value (0.1*30 must not become 4)."""
-    # 0.1 as a double is slightly above 1/10, so ceil(0.1 * 30) is 4 exactly on that
-    # value, while a float product 3.0000000000000004 would give the same: check a
-    # case where float rounding goes the other way.
-    lam = 0.7  # double value is 0.6999999999999999555...
-    assert E.endpoint(E.delay_scaled(lam, 100), 10) == 7  # exact product < 7
-    assert math.ceil(lam * 10) == 7
-    lam = 1.1  # double value 1.100000000000000088...: 1.1 * 10 is 11.000000000000002
-    assert E.endpoint(E.delay_scaled(lam, 100), 10) == 12  # exact value is above 11
+def test_delay_scaled_ceil_means_the_decimal_lam():
+    """E-2: ceil(lam * d - 1e-4) on the float's exact value gives the endpoint of the decimal lam."""
+    # 1.1 is stored as 1.100000000000000088...: its exact binary ceiling at d = 10 is 12, not the 11 meant.
+    assert math.ceil(Fraction(1.1) * 10) == 12
+    assert E.endpoint(E.delay_scaled(1.1, 100), 10) == 11
+    # The float64 product 0.28 * 25 is 7.000000000000001: its ceiling is 8, not the 7 meant.
+    assert math.ceil(0.28 * 25) == 8 and E.endpoint(E.delay_scaled(0.28, 100), 25) == 7
+    assert math.ceil(Fraction(1.6) * 5) == 9 and E.endpoint(E.delay_scaled(1.6, 100), 5) == 8
+    assert E.endpoint(E.delay_scaled(0.7, 100), 10) == 7  # stored below 0.7: the product lies below 7
     assert E.endpoint(E.delay_scaled(2.5, 100), 3) == 8
+    assert E.endpoint(E.delay_scaled(1.0001, 100), 2) == 3  # 2.0002 is above 2 by more than delta
+    assert E.endpoint(E.delay_scaled(1.00001, 100), 2) == 2  # 2.00002 is within delta of 2
+    # Every lam with three decimals gives the decimal ceiling.
+    for k in range(0, 4001, 7):
+        for d in range(0, 40):
+            assert E.endpoint(E.delay_scaled(k / 1000, 4096), d) == -(-(k * d) // 1000), (k, d)
 
 
 def test_schedules():

@@ -27,9 +27,8 @@ def endpoint(rule: dict, d: int) -> int:
     if kind == "delay_scaled":
         lam = real("lam", rule.get("lam"), 0.0, MAX_WINDOW)
         h_max = integer("h_max", rule.get("h_max"), 0, MAX_WINDOW)
-        # lam is a multiple of 1/4 in practice, so lam * d is exact in binary ([E-2]).
-        # Fraction: the exact value of the float, so the ceiling is exact ([E-2]).
-        return 0 if d == 0 else min(math.ceil(Fraction(lam) * d), h_max)
+        # [E-2]: exact product of the float's value (Fraction), less delta = 1e-4, then the ceiling.
+        return 0 if d == 0 else min(math.ceil(Fraction(lam) * d - Fraction(1, 10000)), h_max)
     if kind == "offset":
         L = integer("length", rule.get("length"), 0, MAX_WINDOW)
         h_max = integer("h_max", rule.get("h_max"), 0, MAX_WINDOW)

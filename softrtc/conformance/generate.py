@@ -109,8 +109,12 @@ def gen_endpoints() -> _Cases:
         for d in range(13):
             c.add(f"E.endpoint.{_rule_id(rd)}.d{d}", "endpoint", reqs + (["E-6"] if d == 0 else []), TOL_EXACT,
                   {"rule": rd, "d": d}, {"e": endpoints.endpoint(rule, d)})
-    # The ceiling is exact on the binary value of lam ([E-2]): 0.25 * 4 = 1 exactly, 1.75 * 4 = 7.
-    for lam, d in ((0.25, 4), (1.75, 4), (2.5, 3), (3.75, 7)):
+    # [E-2] ceil(lam * d - 1e-4) on the exact value of lam: binary-exact lam (0.25 * 4 = 1, 1.75 * 4 = 7) and
+    # decimal lam stored slightly above (1.1, 1.6, 2.2) or below (0.7, 0.3) the number written, where the exact
+    # binary ceiling is off; 0.28 * 25 and 0.56 * 25 (float64 product above the integer), 0.6 * 25 and 1.2 * 25
+    # (float32 product above it), where the ceiling of a float product without delta is off.
+    for lam, d in ((0.25, 4), (1.75, 4), (2.5, 3), (3.75, 7), (1.1, 10), (1.6, 5), (2.2, 5), (0.7, 10), (0.3, 3),
+                   (1.6, 3), (1.001, 3), (0.28, 25), (0.56, 25), (0.6, 25), (1.2, 25)):
         rule = endpoints.delay_scaled(lam, 64)
         c.add(f"E.endpoint.exact-ceil.lam{lam}.d{d}", "endpoint", ["E-2"], TOL_EXACT,
               {"rule": rule.to_dict(), "d": d}, {"e": endpoints.endpoint(rule, d)})

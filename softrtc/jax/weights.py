@@ -10,7 +10,7 @@ public API they are Python strings (static fields of :class:`SoftWindow`).
 Instead of slicing (which needs static bounds) every function computes all
 ``H`` tokens and selects the committed prefix / window / tail with masks.
 
->>> prefix_weights(10, 2, 6, "linear").round(3).tolist()
+>>> [round(float(x), 3) for x in prefix_weights(10, 2, 6, "linear")]  # float32 values, rounded
 [1.0, 1.0, 0.8, 0.6, 0.4, 0.2, 0.0, 0.0, 0.0, 0.0]
 """
 

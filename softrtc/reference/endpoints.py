@@ -27,6 +27,9 @@ RULES = ("delay_scaled", "fixed", "offset", "hard")
 # it keeps vector files and JAX tables finite.
 MAX_WINDOW = 4096
 
+# [E-2] delta of the delay-scaled ceiling: ceil(lam * d - delta) is the endpoint the decimal lam means.
+DELAY_SCALED_DELTA = Fraction(1, 10000)
+
 
 @dataclass(frozen=True)
 class EndpointRule:
@@ -62,7 +65,11 @@ class EndpointRule:
 
 
 def delay_scaled(lam: float, h_max: int) -> EndpointRule:
-    """[E-2] e(d) = min(ceil(lam * d), h_max), exact ceil of the given binary value of lam."""
+    """[E-2] e(d) = min(ceil(lam * d - 1e-4), h_max), exact on the value of lam.
+
+    >>> [endpoint(delay_scaled(1.6, 16), d) for d in range(6)]
+    [0, 2, 4, 5, 7, 8]
+    """
     return EndpointRule("delay_scaled", lam=float(check_real("lam", lam, 0.0, float(MAX_WINDOW))),
                         h_max=check_int("h_max", h_max, 0, MAX_WINDOW))
 
@@ -94,9 +101,9 @@ def endpoint(rule: EndpointRule, d: int) -> int:
     if d == 0:
         return 0
     if rule.kind == "delay_scaled":
-        # Fraction(float) is the float's exact value, so the product and its
-        # ceiling are exact: no 0.1*30 = 3.0000000000000004 surprises.
-        return min(math.ceil(Fraction(rule.lam) * d), rule.h_max)
+        # Fraction(float) is the float's exact value, so the product is exact; DELAY_SCALED_DELTA
+        # snaps a product that the decimal lam makes an integer (1.6 * 5) back onto it.
+        return min(math.ceil(Fraction(rule.lam) * d - DELAY_SCALED_DELTA), rule.h_max)
     if rule.kind == "offset":
         return min(d + rule.length, rule.h_max)
     if rule.kind == "fixed":
