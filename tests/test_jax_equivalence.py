@@ -620,3 +620,18 @@ def test_exp_schedule_is_exactly_one_at_zero_in_float32():
         for d in range(H):
             w = JW.prefix_weights(H, d, H, "exp", "paper")
             assert float(jnp.max(w)) <= 1.0
+
+
+def test_twin_api_differences_are_the_listed_ones():
+    """N-10: window_positions returns all H tokens (the window's entries are the reference's) and rejects e < d
+    like the reference; soft_weights defaults to SoftWindow(), the paper's main setting."""
+    for p in ("rtc", "paper"):
+        for d, e in ((2, 6), (0, 3), (3, 4)):
+            full = np.asarray(JW.window_positions(8, d, e, p))
+            assert full.shape == (8,)
+            np.testing.assert_allclose(full[d:e], R.weights.window_positions(d, e, p), rtol=1e-6)
+    for call in (lambda: JW.window_positions(8, 5, 3), lambda: R.weights.window_positions(5, 3)):
+        with pytest.raises(ValueError, match="^e must be an integer"):
+            call()
+    np.testing.assert_allclose(np.asarray(JW.soft_weights(8, 3, s=4)),
+                               R.weights.soft_weights(8, 3, R.SoftWindow(), s=4), rtol=1e-6)

@@ -154,3 +154,47 @@ def test_cli_stops_quietly_when_its_reader_goes_away():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def test_flow_time_arguments_are_range_checked():
+    """N-7: flow times outside [0, 1], NaN or bool, and mis-shaped flipped times raise naming the argument."""
+    from softrtc.jax import sampler as jsampler
+    from softrtc.jax import velocity as jvelocity
+    from softrtc.reference import conventions, velocity
+
+    w = [1.0, 0.5, 0.0]
+    for t in (5.0, -0.1, float("nan"), True):
+        with pytest.raises(ValueError, match=r"^t must be .*\[0\.0, 1\.0\]"):
+            sampler.blend_time(t, w)
+    with pytest.raises(ValueError, match="t_flipped must be a scalar or have the shape of weights"):
+        conventions.flipped_token_times(w, np.array([0.1, 0.2]))
+    for fn in (velocity.time_features, jvelocity.time_features):
+        with pytest.raises(ValueError, match=r"^t values must lie in \[0\.0, 1\.0\]"):
+            fn(np.array([0.5, 7.0]))
+    with pytest.raises(ValueError, match=r"^t values must lie in \[0\.0, 1\.0\]"):
+        jsampler.blend_time(np.float32(1.5), np.array(w))
+    with pytest.raises(ValueError, match=r"^t values must lie"):
+        F(np.zeros(3), np.zeros((4, 2)), np.full(4, 1.5))
+    np.testing.assert_allclose(sampler.blend_time(0.5, w), [1.0, 0.75, 0.5])
+    np.testing.assert_allclose(np.asarray(jsampler.blend_time(0.5, np.array(w))), [1.0, 0.75, 0.5])
+
+
+def test_naive_method_rejects_delays_the_executor_cannot_run():
+    """X-1, N-7: naive ignores d, yet a delay outside [0, min(s, H - s)] or an s outside [1, H] is rejected."""
+    from softrtc.jax import methods as jmethods
+    from softrtc.reference import methods as rmethods
+
+    field = ReferenceVelocityField.init(0, 8, 2, 3)
+    obs, noise = np.zeros((1, 3), np.float32), np.zeros((1, 8, 2), np.float32)
+    calls = {
+        "reference": lambda s, d: rmethods.generate_chunk("naive", field, obs[0], noise[0], noise[0], s, d, 2),
+        "jax": lambda s, d: jmethods.generate_chunk("naive", lambda o, x, t: x, obs, noise, noise, s, d, 2),
+        "jax conditioned": lambda s, d: jmethods.generate_chunk_conditioned("naive", None, obs, noise, noise,
+                                                                            s, d, 2),
+    }
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=r"^d must be an integer in \[0, 4\], got 5"):
+            call(4, 5)
+        with pytest.raises(ValueError, match=r"^s must be an integer in \[1, 8\], got 9"):
+            call(9, 0)
+    assert rmethods.generate_chunk("naive", field, obs[0], noise[0], noise[0], 4, 4, 2).shape == (8, 2)

@@ -1,4 +1,4 @@
-"""A standalone PyTorch port of the softrtc rules, written as a porting example (spec/40-conformance.md).
+"""A standalone PyTorch port of the softrtc rules, written as a porting example ([CF-21], spec/40-conformance.md).
 
 Modules: checks (input validation), weights (E, W, G-1), training (C, L),
 field (the reference velocity field F), sampling (S, G in the spec's time

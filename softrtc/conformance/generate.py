@@ -1,5 +1,7 @@
 """Generate the conformance vectors of conformance/vectors/ from the NumPy reference ([CF-1]..[CF-6]).
 
+The cases of each chapter, and so the coverage of [CF-4], are built by the ``gen_<chapter>`` functions below.
+
     python -m softrtc.conformance.generate [--out DIR]
     softrtc conformance generate [--out DIR]
 

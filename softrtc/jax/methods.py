@@ -97,7 +97,10 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     v.check_choice("method", method, METHODS)
     H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
     H = v.check_int("noise.shape[1] (H)", H, 1)
+    s = v.check_int("s", s, 1, H)
     _check_first(prior, d)
+    if prior is not None:
+        _delay(H, s, d)  # also for naive, which ignores d: a delay the executor cannot run is an error
     if prior is None or method == "naive":
         return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
     w = method_weights(method, H, s, d, window)
@@ -187,6 +190,8 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     if not isinstance(restrict_guidance, bool):
         raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
     naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]
+    if prior is not None:
+        _delay(H, s, d)  # also for naive, which ignores d
     if prior is None or method == "naive":
         return naive_sample_conditioned(model, obs, noise, num_steps, cond=naive_cond, unroll=unroll)
     if tables is None:

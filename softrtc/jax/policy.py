@@ -433,6 +433,7 @@ class FlowPolicy(nnx.Module):
             nnx.Linear(c, c, rngs=rngs),
             nnx.swish,
         )
+        # [P-5] v = out_proj(final_norm(h) * (1 + scale) + shift), (scale, shift) = final_adaln(c).
         self.final_norm = nnx.LayerNorm(c, use_scale=False, use_bias=False, rngs=rngs)
         self.final_adaln = nnx.Linear(c, 2 * c, kernel_init=nnx.initializers.zeros_init(), rngs=rngs)
         self.out_proj = nnx.Linear(c, action_dim, rngs=rngs)
@@ -489,7 +490,8 @@ class FlowPolicy(nnx.Module):
         shared by all tokens, the naive-sampler fast path [P-13]); values in [0, 1].
         Returns ``{"mlp_stack": ({"adaln_1": m, "adaln_2": m}, ...) per layer,
         "final_adaln": f}`` with ``m`` of shape ``t.shape + (3C,)`` and ``f`` of shape
-        ``t.shape + (2C,)``. The result depends on ``t`` and the parameters only, so a
+        ``t.shape + (2C,)``. Each token's entries depend on its own time ``t[..., j]``
+        only, and equal those of a shared time of that value [P-10]. The result depends on ``t`` and the parameters only, so a
         table over (delay, solver step) can be built once and indexed inside a jitted
         sampler (``jax.tree.map(lambda a: a[k], table)``).
 

@@ -55,7 +55,7 @@ def blend(x, prior, weights) -> jax.Array:
 def blend_time(t, weights) -> jax.Array:
     """t~_j = w_j + (1 - w_j) t ([S-3]); t a scalar or broadcastable to weights' leading dims."""
     w = v.array("weights", weights, lo=0.0, hi=1.0)
-    t = jnp.asarray(t, jnp.float32)
+    t = v.array("t", t, lo=0.0, hi=1.0)
     return w + (1.0 - w) * t[..., None] if t.ndim else w + (1.0 - w) * t
 
 

@@ -324,7 +324,7 @@ def _loss_fn(spec: _StepSpec, tables: tuple, params: Any, rest: Any, obs: jax.Ar
     w, tau, eps = draw["weights"], draw["tau"], draw["noise"]
     x, tj = corrupt(actions, eps, w, tau)  # [C-1], [C-2]
     # `none` is plain flow matching: one time per sample ([B]), so the policy computes its
-    # time conditioning once per sample and shares it over the tokens ([P-8]).
+    # time conditioning once per sample and shares it over the tokens ([P-9]).
     pred = model(obs, x, tau if spec.scalar_time else tj)
     loss = jnp.mean(flow_matching_loss(pred, actions, eps, w, ETA))  # [L-1]..[L-3]
     return loss, jnp.mean(draw["delay"].astype(jnp.float32))

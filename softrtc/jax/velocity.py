@@ -25,8 +25,8 @@ PARAM_NAMES = _ref.PARAM_NAMES
 
 
 def time_features(t) -> jax.Array:
-    """phi(t): [..., H] -> [..., H, 3] ([F-1])."""
-    t = jnp.asarray(t, jnp.float32)
+    """phi(t): [..., H] -> [..., H, 3] ([F-1]); t flow times in [0, 1] (checked when concrete)."""
+    t = v.array("t", t, lo=0.0, hi=1.0)
     return jnp.stack([t, jnp.sin(jnp.pi * t), jnp.cos(jnp.pi * t)], axis=-1)
 
 

@@ -68,6 +68,8 @@ def window_positions(H: int, d, e, parametrization: str = "rtc") -> jax.Array:
     v.check_choice("parametrization", parametrization, PARAMETRIZATIONS)
     d = v.int_value("d", d, 0, H)
     e = v.int_value("e", e, 0, H)
+    if not v.is_traced(d) and not v.is_traced(e) and int(e) < int(d):
+        raise ValueError(f"e must be an integer in [d={int(d)}, {H}], got {int(e)}")
     return _positions(H, d, e, PARAMETRIZATIONS.index(parametrization))
 
 

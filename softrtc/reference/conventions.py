@@ -33,4 +33,7 @@ def flipped_token_times(weights, t_flipped: float) -> np.ndarray:
     """t~'_j = (1 - w_j) t' ([V-3]); equals 1 - (w_j + (1 - w_j) t)."""
     w = check_array("weights", weights, ndim=1, lo=0.0, hi=1.0)
     tf = check_array("t_flipped", t_flipped, lo=0.0, hi=1.0)
+    if tf.ndim != 0 and tf.shape != w.shape:
+        raise ValueError(f"t_flipped must be a scalar or have the shape of weights {list(w.shape)}, "
+                         f"got {list(tf.shape)}")
     return (1.0 - w) * tf

@@ -44,6 +44,7 @@ def generate_chunk(method: str, field, obs, noise, prior, s: int, d: int, num_st
     check_choice("method", method, METHODS)
     H = np.shape(noise)[0] if np.ndim(noise) == 2 else -1
     H = check_int("noise.shape[0]", H, 1)
+    s = check_int("s", s, 1, H)
     if prior is None:
         check_int("d", d, 0, 0)
         return naive_sample(field, obs, noise, num_steps)

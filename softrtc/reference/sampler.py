@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_int
+from ._validate import check_array, check_int, check_real
 from .weights import check_weights
 
 
@@ -32,9 +32,9 @@ def blend(x, prior, weights) -> np.ndarray:
 
 
 def blend_time(t: float, weights) -> np.ndarray:
-    """t~_j = w_j + (1 - w_j) t ([S-3])."""
+    """t~_j = w_j + (1 - w_j) t ([S-3]); t a flow time in [0, 1]."""
     w = check_array("weights", weights, ndim=1, lo=0.0, hi=1.0)
-    return w + (1.0 - w) * float(t)
+    return w + (1.0 - w) * check_real("t", t, 0.0, 1.0)
 
 
 def _check_inputs(field, obs, noise):

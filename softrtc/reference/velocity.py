@@ -20,8 +20,8 @@ PARAM_NAMES = ("W1", "Wt", "Wo", "b1", "W2", "b2")
 
 
 def time_features(t) -> np.ndarray:
-    """phi(t): [H] -> [H, 3] ([F-1])."""
-    t = np.asarray(t, dtype=np.float64)
+    """phi(t): [H] -> [H, 3] ([F-1]); t flow times in [0, 1]."""
+    t = check_array("t", t, ndim=1, lo=0.0, hi=1.0)
     return np.stack([t, np.sin(np.pi * t), np.cos(np.pi * t)], axis=-1)
 
 
@@ -75,7 +75,7 @@ class ReferenceVelocityField:
     def _check(self, obs, x, t):
         obs = check_array("obs", obs, shape=(self.obs_dim,))
         x = check_array("x", x, shape=(self.horizon, self.action_dim))
-        t = check_array("t", t, shape=(self.horizon,))
+        t = check_array("t", t, shape=(self.horizon,), lo=0.0, hi=1.0)
         return obs, x, t
 
     def _hidden(self, obs, x, t) -> np.ndarray:
