@@ -76,6 +76,13 @@ def main(argv=None) -> int:
         # Point stdout at devnull so the interpreter's final flush does not raise a second time.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141  # 128 + SIGPIPE, the status a shell reports for a tool killed by a closed pipe
+    except (ValueError, OSError, OverflowError) as exc:
+        # Invalid input ([N-7]) or an unusable file: one line naming the problem, no traceback.
+        # SOFTRTC_TRACEBACK=1 shows the traceback when debugging softrtc itself.
+        if os.environ.get("SOFTRTC_TRACEBACK") == "1":
+            raise
+        print(f"softrtc {args.command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

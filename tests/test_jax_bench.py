@@ -160,11 +160,17 @@ def test_cli_options(capsys):
     args = parser.parse_args(["bench", "runtime", "--batch-sizes", "1,4", "--delay", "2", "--calls", "7"])
     assert args.batch_sizes == (1, 4) and args.delay == 2 and args.calls == 7 and args.path == "fast"
     assert parser.parse_args(["bench", "runtime"]).out == "runs/bench_runtime.json"
-    with pytest.raises(SystemExit):
-        parser.parse_args(["bench", "runtime", "--batch-sizes", "0"])
+    for bad_option in (["--batch-sizes", "0"], ["--batch-sizes", "1,,2"], ["--batch-sizes", "2,"],
+                       ["--batch-sizes", "2,2"], ["--out", ""], ["--out", "softrtc"], ["--out", "README.md/x.json"]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["bench", "runtime", *bad_option])
+    capsys.readouterr()
     bad = parser.parse_args(["bench", "runtime", "--delay", "7"])
     assert jax_cli.run_runtime(bad) == 2
-    assert "delay" in capsys.readouterr().err
+    assert "--delay must be an integer in [0, 4]" in capsys.readouterr().err
+    bad = parser.parse_args(["bench", "runtime", "--steps", "0"])
+    assert jax_cli.run_runtime(bad) == 2
+    assert "--steps must be an integer in [1, 1000], got 0" in capsys.readouterr().err
 
 
 def test_delay_rows_match_traced_delay_tables():

@@ -323,20 +323,39 @@ def test_finetune_soft_and_cli_hard(tmp_path, capsys):
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
-    """KE-12, N-7: bad arguments and missing directories print one clear error line, exit status 2."""
+    """KE-12, N-7: bad arguments and missing directories print one clear error line, exit status 2,
+    before any work starts (argparse rejects malformed options, the command the rest)."""
     from softrtc.cli import main
 
+    def status(argv):
+        try:
+            return main(argv)
+        except SystemExit as exc:  # argparse: usage line, then the error line
+            return exc.code
+
+    (tmp_path / "afile").write_text("x")
     cases = [
         (["kinetix", "eval", "--levels", "grasp_easy,nope", "--out", str(tmp_path)], "levels"),
         (["kinetix", "eval", "--levels", "grasp_easy", "--levels-dir", str(tmp_path / "none"),
-          "--out", str(tmp_path)], "levels_dir"),
+          "--out", str(tmp_path)], "--levels-dir"),
         (["kinetix", "eval", "--methods", "train_soft:wide", "--out", str(tmp_path)], "method"),
         (["kinetix", "eval", "--delays", "0,x", "--out", str(tmp_path)], "--delays"),
+        (["kinetix", "eval", "--delays", "1,,2", "--out", str(tmp_path)], "--delays"),
+        (["kinetix", "eval", "--levels", "", "--out", str(tmp_path)], "--levels"),
+        (["kinetix", "eval", "--out", str(tmp_path / "afile")], "--out"),
+        (["kinetix", "eval", "--init-seed", "99999999999999999999", "--out", str(tmp_path)], "--init-seed"),
         (["kinetix", "finetune", "--data", str(tmp_path / "none"), "--bc", str(tmp_path), "--method", "soft",
           "--out", str(tmp_path)], "--data"),
+        (["kinetix", "finetune", "--data", str(tmp_path), "--bc", str(tmp_path), "--method", "hard",
+          "--levels", "grasp_easy,catapult", "--out", str(tmp_path / "ft")], "grasp_easy"),
+        (["kinetix", "finetune", "--data", str(tmp_path), "--bc", str(tmp_path), "--method", "hard",
+          "--levels", ",", "--out", str(tmp_path / "ft")], "--levels"),
         (["kinetix", "bench", "--level", "nope"], "level"),
+        (["kinetix", "bench", "--out", str(tmp_path)], "--out"),
     ]
     for argv, word in cases:
-        assert main(argv) == 2, argv
+        assert status(argv) == 2, argv
         err = capsys.readouterr().err
-        assert err.startswith("softrtc kinetix ") and word in err and "Traceback" not in err, err
+        last = err.strip().splitlines()[-1]
+        assert last.startswith("softrtc kinetix ") and word in last and "Traceback" not in err, err
+    assert not (tmp_path / "ft").exists()  # nothing trained before the missing inputs were found

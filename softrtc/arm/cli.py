@@ -2,57 +2,50 @@
 
 from __future__ import annotations
 
-import argparse
 import tempfile
+
+from .._cli_util import group_help, input_dir, int_in, output_dir, real_in
 
 __all__ = ["add_subparsers", "demo"]
 
 
-def _nonneg_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {v}")
-    return v
-
-
-def _pos_int(text: str) -> int:
-    v = _nonneg_int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {v}")
-    return v
+SEED_MAX = 2**31 - 1
 
 
 def add_subparsers(subparsers) -> None:
     """Register ``arm train``, ``arm study`` and ``arm expert`` on the top-level CLI."""
     arm = subparsers.add_parser("arm", help="planar arm sorting study (spec/10-arm.md)")
     sub = arm.add_subparsers(dest="arm_command", metavar="ARM_COMMAND")
-    arm.set_defaults(func=lambda a: (arm.print_help(), 0)[1])
+    arm.set_defaults(func=group_help(arm))
 
     tr = sub.add_parser("train", help="demos, base BC flow policy, Train Hard / Soft RTC fine-tunes ([A-20])")
-    tr.add_argument("--out", default=None, help="checkpoint folder (default: softrtc/arm/checkpoints)")
-    tr.add_argument("--episodes", type=_pos_int, default=400, help="DART demo episodes (default 400)")
-    tr.add_argument("--steps", type=_pos_int, default=4000, help="base training steps (default 4000)")
-    tr.add_argument("--finetune-steps", type=_pos_int, default=800, help="RTC fine-tune steps (default 800)")
-    tr.add_argument("--seed", type=_nonneg_int, default=0, help="seed of demos and training (default 0)")
+    tr.add_argument("--out", type=output_dir(), default=None, help="checkpoint folder (default: softrtc/arm/checkpoints)")
+    tr.add_argument("--episodes", type=int_in("value", 1, 100000), default=400,
+                    help="DART demo episodes, 1 .. 100000 (default 400)")
+    tr.add_argument("--steps", type=int_in("value", 1, 10**7), default=4000, help="base training steps (default 4000)")
+    tr.add_argument("--finetune-steps", type=int_in("value", 1, 10**7), default=800,
+                    help="RTC fine-tune steps (default 800)")
+    tr.add_argument("--seed", type=int_in("value", 0, SEED_MAX - 2), default=0,
+                    help=f"seed of demos and training, 0 .. {SEED_MAX - 2} (default 0)")
     tr.set_defaults(func=_train)
 
     st = sub.add_parser("study", help="real-time study table, CSV and joint-trace plot ([A-25])")
-    st.add_argument("--checkpoints", default=None, help="checkpoint folder (default: the shipped ones)")
-    st.add_argument("--trials", type=_pos_int, default=10, help="trials per method (default 10)")
-    st.add_argument("--latency-ms", type=float, default=55.0,
-                    help="added policy latency in ms (default 55: realized delay 3-4 ticks)")
-    st.add_argument("--seed0", type=_nonneg_int, default=10_000, help="first env seed (default 10000)")
-    st.add_argument("--key-seed", type=_nonneg_int, default=0, help="sampler key seed (default 0)")
-    st.add_argument("--max-steps", type=_pos_int, default=None, help="ticks per episode (default 1000)")
-    st.add_argument("--out", default="arm_study", help="output folder (default ./arm_study)")
+    st.add_argument("--checkpoints", type=input_dir(), default=None,
+                    help="checkpoint folder (default: the shipped ones)")
+    st.add_argument("--trials", type=int_in("value", 1, 10000), default=10, help="trials per method, 1 .. 10000 "
+                                                                                 "(default 10)")
+    st.add_argument("--latency-ms", type=real_in("value", 0.0, 10000.0), default=55.0,
+                    help="added policy latency in ms, 0 .. 10000 (default 55: realized delay 3-4 ticks)")
+    st.add_argument("--seed0", type=int_in("value", 0, SEED_MAX), default=10_000, help="first env seed (default 10000)")
+    st.add_argument("--key-seed", type=int_in("value", 0, SEED_MAX), default=0, help="sampler key seed (default 0)")
+    st.add_argument("--max-steps", type=int_in("value", 1, 1000), default=None,
+                    help="ticks per episode, 1 .. 1000 (default 1000)")
+    st.add_argument("--out", type=output_dir(), default="arm_study", help="output folder (default ./arm_study)")
     st.set_defaults(func=_study)
 
     ex = sub.add_parser("expert", help="scripted expert success rate over seeds ([A-14])")
-    ex.add_argument("-n", type=_pos_int, default=100, help="episodes (default 100)")
-    ex.add_argument("--seed0", type=_nonneg_int, default=0, help="first seed (default 0)")
+    ex.add_argument("-n", type=int_in("value", 1, 100000), default=100, help="episodes (default 100)")
+    ex.add_argument("--seed0", type=int_in("value", 0, SEED_MAX), default=0, help="first seed (default 0)")
     ex.set_defaults(func=_expert)
 
 

@@ -8,15 +8,20 @@ from __future__ import annotations
 import argparse
 import sys
 
+from .._cli_util import group_help
 from . import generate, runner
 
 
 def add_subparsers(subparsers) -> None:
     """Register the `conformance` command with its `run` and `generate` subcommands."""
-    conf = subparsers.add_parser("conformance", help="conformance vectors: run an implementation against them, "
-                                                     "or regenerate them from the reference")
+    _fill(subparsers.add_parser("conformance", help="conformance vectors: run an implementation against them, "
+                                                    "or regenerate them from the reference"))
+
+
+def _fill(conf: argparse.ArgumentParser) -> None:
+    """The `run` and `generate` subcommands on ``conf`` (`softrtc conformance` or `python -m softrtc.conformance`)."""
     sub = conf.add_subparsers(dest="conformance_command", metavar="SUBCOMMAND")
-    conf.set_defaults(func=lambda args: (conf.print_help(), 2)[1])
+    conf.set_defaults(func=group_help(conf), command="conformance")
     run_p = sub.add_parser("run", help="run the vectors against an adapter (reference, jax, torch, torch-flipped, "
                                        "module:ATTR or file.py:ATTR)")
     runner.add_arguments(run_p)
@@ -34,8 +39,8 @@ def demo() -> int:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m softrtc.conformance")
-    add_subparsers(parser.add_subparsers(dest="command", metavar="COMMAND"))
-    args = parser.parse_args(["conformance", *(argv if argv is not None else sys.argv[1:])])
+    _fill(parser)
+    args = parser.parse_args(argv)
     return int(args.func(args) or 0)
 
 

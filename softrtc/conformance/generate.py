@@ -25,6 +25,7 @@ from softrtc.reference import (conventions, corruption, delays, endpoints, execu
                                metrics, sampler, velocity, weights)
 from softrtc.reference.weights import SoftWindow
 
+from .._cli_util import output_dir
 from . import FORMAT_VERSION, SPEC_VERSION
 
 DEFAULT_OUT = Path(__file__).resolve().parents[2] / "conformance" / "vectors"
@@ -524,11 +525,15 @@ def generate(out_dir=None) -> dict:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default=None, help=f"output directory (default: {DEFAULT_OUT})")
+    parser.add_argument("--out", type=output_dir(), default=None, help=f"output directory (default: {DEFAULT_OUT})")
 
 
 def run_from_args(args) -> int:
-    sizes = generate(args.out)
+    try:
+        sizes = generate(args.out)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     for name, size in sizes.items():
         print(f"{name:20s} {size:>9d} bytes")
     print(f"total {sum(sizes.values())} bytes in {Path(args.out) if args.out else DEFAULT_OUT}")

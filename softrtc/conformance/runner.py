@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._cli_util import comma_list, input_dir, output_file
 from . import FORMAT_VERSION
 from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, load_adapter,
                       supported_functions)
@@ -99,7 +100,7 @@ def load_vectors(directory=None) -> list[dict]:
     """Read every vector file of ``directory`` (index.json excluded), checking format_version ([CF-2])."""
     d = Path(directory) if directory is not None else DEFAULT_VECTORS
     if not d.is_dir():
-        raise VectorError(f"vectors directory {d} does not exist")
+        raise VectorError(f"vectors directory {d} {'is not a directory' if d.exists() else 'does not exist'}")
     files = sorted(p for p in d.glob("*.json") if p.name != "index.json")
     if not files:
         raise VectorError(f"vectors directory {d} holds no *.json vector files")
@@ -110,14 +111,33 @@ def load_vectors(directory=None) -> list[dict]:
             data = json.loads(p.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise VectorError(f"cannot read vector file {p}: {exc}") from None
+        if not isinstance(data, dict):
+            raise VectorError(f"{p.name}: expected a JSON object with 'format_version' and 'cases', "
+                              f"got a {type(data).__name__}")
         fv = str(data.get("format_version", ""))
         if fv.split(".")[0] != major:
             raise VectorError(f"{p.name}: format_version {fv!r} is not readable by this runner (needs {major}.x)")
         if not isinstance(data.get("cases"), list):
             raise VectorError(f"{p.name}: missing 'cases' list")
+        for i, case in enumerate(data["cases"]):
+            _check_case_shape(p.name, i, case)
         data["_file"] = p.name
         out.append(data)
     return out
+
+
+def _check_case_shape(file: str, i: int, case) -> None:
+    """The fields every case has ([CF-2], spec/vectors.schema.json), so a malformed file fails in one line."""
+    where = f"{file}: case {i}"
+    if not isinstance(case, dict):
+        raise VectorError(f"{where} must be a JSON object, got {type(case).__name__}")
+    for key, kind in (("id", str), ("function", str), ("requirements", list), ("args", dict), ("tolerance", dict),
+                      ("expected", dict)):
+        if not isinstance(case.get(key), kind):
+            raise VectorError(f"{where} ({case.get('id', '?')!r}): '{key}' must be a {kind.__name__}, "
+                              f"got {type(case.get(key)).__name__}")
+    if not all(isinstance(r, str) for r in case["requirements"]):
+        raise VectorError(f"{where} ({case['id']!r}): 'requirements' must be a list of strings")
 
 
 # ---------------------------------------------------------------- calling
@@ -446,15 +466,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--impl", required=True,
                         help="built-in adapter (reference, jax, torch, torch-flipped), module[:ATTR] "
                              "or path/file.py[:ATTR]")
-    parser.add_argument("--vectors", default=None, help=f"vector directory (default: {DEFAULT_VECTORS})")
-    parser.add_argument("--report", default=None, help="write a JSON report to this file")
-    parser.add_argument("--junit", default=None, help="write JUnit XML to this file")
-    parser.add_argument("--only", default=None, help="comma-separated interface functions to run (default: all)")
+    parser.add_argument("--vectors", type=input_dir(), default=None,
+                        help=f"vector directory (default: {DEFAULT_VECTORS})")
+    parser.add_argument("--report", type=output_file(), default=None, help="write a JSON report to this file")
+    parser.add_argument("--junit", type=output_file(), default=None, help="write JUnit XML to this file")
+    parser.add_argument("--only", type=comma_list("value", _interface_function), default=None,
+                        help="comma-separated interface functions to run (default: all): "
+                             + ", ".join(sorted(INTERFACE)))
+
+
+def _interface_function(name: str) -> str:
+    if name not in INTERFACE:
+        raise argparse.ArgumentTypeError(f"{name!r} is not an interface function; choose from "
+                                         f"{', '.join(sorted(INTERFACE))}")
+    return name
 
 
 def run_from_args(args) -> int:
     """Exit status: 0 all supported cases pass, 1 some failed or none ran, 2 nothing could run ([CF-16])."""
-    only = None if not args.only else {f.strip() for f in args.only.split(",") if f.strip()}
+    only = None if args.only is None else set(args.only)
     try:
         res = run(args.impl, args.vectors, only)
     except (AdapterError, VectorError) as exc:
@@ -462,6 +492,9 @@ def run_from_args(args) -> int:
         return 2
     print(format_summary(res))
     try:
+        for out in (args.report, args.junit):
+            if out:
+                Path(out).parent.mkdir(parents=True, exist_ok=True)
         if args.report:
             Path(args.report).write_text(json.dumps(report_dict(res), indent=1, sort_keys=True) + "\n")
         if args.junit:

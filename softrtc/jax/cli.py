@@ -12,16 +12,24 @@ import argparse
 import sys
 import time
 
+from .._cli_util import comma_list, group_help, int_in, output_file
+
+
+_size_list = comma_list("value", int_in("each batch size", 1, 1 << 16))
+
 
 def _batch_sizes(text: str) -> tuple:
-    try:
-        sizes = tuple(int(p) for p in text.split(",") if p.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--batch-sizes must be comma-separated integers >= 1, got {text!r}")
-    if not sizes or any(b < 1 for b in sizes) or len(set(sizes)) != len(sizes):
-        raise argparse.ArgumentTypeError(f"--batch-sizes must be distinct comma-separated integers >= 1, "
-                                         f"got {text!r}")
-    return sizes
+    return tuple(_size_list(text))
+
+# BenchConfig's field names as the options that set them, for its error messages.
+_OPTIONS = {"calls": "--calls", "warmup": "--warmup", "batch_sizes": "--batch-sizes", "delay": "--delay",
+            "seed": "--seed", "num_steps": "--steps", "execute_horizon": "--execute-horizon", "path": "--path",
+            "train_batch": "--train-batch", "train_calls": "--train-calls", "arch": "--arch"}
+
+
+def _as_options(message: str) -> str:
+    field = message.split(" ", 1)[0]
+    return _OPTIONS[field] + message[len(field):] if field in _OPTIONS else message
 
 
 def _delay(text: str):
@@ -48,14 +56,14 @@ def _common_options(parser, noun: str, out: str) -> None:
     parser.add_argument("--execute-horizon", type=int, default=4, help="execute horizon s (default 4)")
     parser.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark",
                         help="policy size: the benchmark's (obs 679, action 6, H 8; default) or a tiny smoke-test one")
-    parser.add_argument("--out", default=out, help=f"JSON output (default {out})")
+    parser.add_argument("--out", type=output_file(), default=out, help=f"JSON output (default {out})")
 
 
 def add_subparsers(subparsers) -> None:
     """Register `bench runtime` ([B-1], [B-10]) and `bench vjp` ([B-12])."""
     bench = subparsers.add_parser("bench", help="benchmarks of the JAX implementation")
     sub = bench.add_subparsers(dest="bench_command", metavar="SUBCOMMAND")
-    bench.set_defaults(func=lambda args: (bench.print_help(), 2)[1])
+    bench.set_defaults(func=group_help(bench))
     rt = sub.add_parser(
         "runtime", help="chunk-generation latency per method (ratio to naive) and training-step time "
                         "(spec/32-runtime-bench.md)")
@@ -88,17 +96,16 @@ def _run(args, run, fmt, **extra):
             calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,
             seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, arch=args.arch, **extra)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"softrtc bench: error: {_as_options(str(exc))}", file=sys.stderr)
         return 2
     res = run(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
     print(fmt(res))
-    if args.out:
-        try:
-            bench.write_json(res, args.out)
-        except OSError as exc:
-            print(f"error: cannot write {args.out}: {exc}", file=sys.stderr)
-            return 2
-        print(f"wrote {args.out}")
+    try:
+        bench.write_json(res, args.out)
+    except OSError as exc:
+        print(f"softrtc bench: error: cannot write {args.out}: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out}")
     return res
 
 

@@ -7,23 +7,34 @@ with its install hint.
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import json
 import sys
 from pathlib import Path
+
+from .._cli_util import comma_list, group_help, input_dir, int_in, nonempty, output_dir, output_file, real_in
 
 for _dep in ("jax", "flax", "kinetix"):
     if importlib.util.find_spec(_dep) is None:
         raise ModuleNotFoundError(f"softrtc kinetix needs {_dep}", name=_dep)
 
 
-def _csv(text: str) -> list[str]:
-    return [p.strip() for p in text.split(",") if p.strip()]
+SEED_MAX = 2**31 - 1
+_levels = comma_list("value")
+_methods = comma_list("value")
+_delays = comma_list("value", int_in("each delay", 0, 4096))
+
+# Names in the errors of the library calls, as the options that set them.
+_OPTIONS = {"learning_rate": "--lr", "config.d_max": "--d-max", "d_max": "--d-max", "batch_size": "--batch-size",
+            "epochs": "--epochs", "num_envs": "--num-envs", "repeats": "--repeats", "episodes": "--episodes"}
 
 
 def _fail(cmd: str, exc: BaseException) -> int:
-    print(f"softrtc kinetix {cmd}: error: {exc}", file=sys.stderr)
+    msg = str(exc)
+    field = msg.split(" ", 1)[0]
+    if field in _OPTIONS:
+        msg = _OPTIONS[field] + msg[len(field):]
+    print(f"softrtc kinetix {cmd}: error: {msg}", file=sys.stderr)
     return 2
 
 
@@ -31,62 +42,72 @@ def add_subparsers(subparsers) -> None:
     """Register the ``kinetix`` command and its subcommands on a top-level ``subparsers``."""
     kin = subparsers.add_parser("kinetix", help="Kinetix benchmark: evaluate, fine-tune release policies, bench")
     sub = kin.add_subparsers(dest="kinetix_command", metavar="SUBCOMMAND")
-    kin.set_defaults(func=lambda args: (kin.print_help(), 0)[1])
+    kin.set_defaults(func=group_help(kin))
 
     ev = sub.add_parser("eval", help="run the evaluation protocol and write CSV + Markdown results")
-    ev.add_argument("--levels", default=None, help="comma-separated level names (default: all 12)")
-    ev.add_argument("--episodes", type=int, default=32, help="episodes per level, delay and method (default 32)")
-    ev.add_argument("--methods", default=None,
+    ev.add_argument("--levels", type=_levels, default=None, help="comma-separated level names (default: all 12)")
+    ev.add_argument("--episodes", type=int_in("value", 1, 1 << 20), default=32,
+                    help="episodes per level, delay and method (default 32)")
+    ev.add_argument("--methods", type=_methods, default=None,
                     help="comma-separated methods: naive, inference_hard, inference_soft, train_hard, train_soft, "
                          "train_soft:delay_scaled:LAM[:H_MAX], train_soft:offset:L[:H_MAX], train_soft:fixed:H "
                          "(default: the paper's main-table rows)")
-    ev.add_argument("--delays", default="0,1,2,3,4", help="comma-separated delays (default 0,1,2,3,4)")
+    ev.add_argument("--delays", type=_delays, default=[0, 1, 2, 3, 4],
+                    help="comma-separated delays (default 0,1,2,3,4)")
     src = ev.add_mutually_exclusive_group()
-    src.add_argument("--policy-dir", default=None,
+    src.add_argument("--policy-dir", type=input_dir(), default=None,
                      help="per-level policies: <level>.npz checkpoints or release worlds_l_<level>.pkl files")
-    src.add_argument("--init-seed", type=int, default=None,
+    src.add_argument("--init-seed", type=int_in("value", 0, SEED_MAX), default=None,
                      help="evaluate a freshly initialised benchmark-size policy with this seed (default 0)")
     ev.add_argument("--method-policy", action="append", default=[], metavar="METHOD=DIR",
                     help="policy directory for one method (e.g. train_hard=ft/hard); repeatable")
-    ev.add_argument("--levels-dir", default=None, help="directory of the level JSON files")
-    ev.add_argument("--seed", type=int, default=0, help="rollout seed (default 0)")
-    ev.add_argument("--out", required=True, help="output directory")
+    ev.add_argument("--levels-dir", type=input_dir(), default=None,
+                    help="directory of the level JSON files (default: ../shared/kinetix-levels)")
+    ev.add_argument("--seed", type=int_in("value", 0, SEED_MAX), default=0, help="rollout seed (default 0)")
+    ev.add_argument("--out", type=output_dir(), required=True, help="output directory")
     ev.add_argument("--no-progress", action="store_true", help="hide progress bars")
     ev.set_defaults(func=_eval)
 
-    ft = sub.add_parser("finetune", help="fine-tune release bc policies for one epoch as hard or soft RTC")
-    ft.add_argument("--data", required=True, help="directory of worlds_l_<level>.npz expert data")
-    ft.add_argument("--bc", required=True, help="release bc directory (worlds_l_<level>.pkl files)")
-    ft.add_argument("--method", required=True, choices=("hard", "soft"))
-    ft.add_argument("--window", default=None,
+    ft = sub.add_parser("finetune", help="fine-tune release bc policies as hard or soft training-time RTC "
+                                         "(one epoch by default)")
+    ft.add_argument("--data", type=input_dir(), required=True, help="directory of worlds_l_<level>.npz expert data")
+    ft.add_argument("--bc", type=input_dir(), required=True, help="release bc directory (worlds_l_<level>.pkl files)")
+    ft.add_argument("--method", required=True, choices=("hard", "soft"), help="training-time RTC variant")
+    ft.add_argument("--window", type=nonempty(), default=None,
                     help="soft window rule: delay_scaled:LAM[:H_MAX] (default delay_scaled:2:5), offset:L[:H_MAX], "
                          "fixed:H, optionally ':zeros'")
-    ft.add_argument("--levels", default=None, help="comma-separated levels (default: those with data files)")
-    ft.add_argument("--epochs", type=int, default=1)
-    ft.add_argument("--batch-size", type=int, default=256)
-    ft.add_argument("--lr", type=float, default=3e-4)
-    ft.add_argument("--d-max", type=int, default=4, help="largest training delay (default 4)")
-    ft.add_argument("--seed", type=int, default=0)
-    ft.add_argument("--out", required=True, help="output directory for <level>.npz checkpoints")
-    ft.add_argument("--no-progress", action="store_true")
+    ft.add_argument("--levels", type=_levels, default=None, help="comma-separated levels (default: those with data files)")
+    ft.add_argument("--epochs", type=int_in("value", 1, 1000), default=1, help="epochs over the data (default 1)")
+    ft.add_argument("--batch-size", type=int_in("value", 1, 1 << 20), default=256,
+                    help="batch size, capped at the number of examples (default 256)")
+    ft.add_argument("--lr", type=real_in("value", 0.0, 10.0), default=3e-4,
+                    help="AdamW learning rate, > 0 (default 3e-4)")
+    ft.add_argument("--d-max", type=int_in("value", 0, 4096), default=4,
+                    help="largest training delay, <= H (default 4)")
+    ft.add_argument("--seed", type=int_in("value", 0, 2**32 - 1), default=0, help="training seed (default 0)")
+    ft.add_argument("--out", type=output_dir(), required=True, help="output directory for <level>.npz checkpoints")
+    ft.add_argument("--no-progress", action="store_true", help="hide progress bars")
     ft.set_defaults(func=_finetune)
 
     be = sub.add_parser("bench", help="harness env steps/s vs bare env steps/s, and rollout compile time")
-    be.add_argument("--level", default="grasp_easy")
-    be.add_argument("--num-envs", type=int, default=64)
-    be.add_argument("--method", default="naive")
-    be.add_argument("--repeats", type=int, default=1)
-    be.add_argument("--seed", type=int, default=0)
-    be.add_argument("--levels-dir", default=None)
-    be.add_argument("--out", default=None, help="optional JSON output file")
-    be.add_argument("--no-progress", action="store_true")
+    be.add_argument("--level", type=nonempty(), default="grasp_easy", help="level name (default grasp_easy)")
+    be.add_argument("--num-envs", type=int_in("value", 1, 1 << 16), default=64,
+                    help="parallel environments (default 64)")
+    be.add_argument("--method", type=nonempty(), default="naive", help="sampler method (default naive)")
+    be.add_argument("--repeats", type=int_in("value", 1, 1000), default=1,
+                    help="timed repetitions of each rollout (default 1)")
+    be.add_argument("--seed", type=int_in("value", 0, SEED_MAX), default=0, help="rollout seed (default 0)")
+    be.add_argument("--levels-dir", type=input_dir(), default=None,
+                    help="directory of the level JSON files (default: ../shared/kinetix-levels)")
+    be.add_argument("--out", type=output_file(), default=None, help="optional JSON output file")
+    be.add_argument("--no-progress", action="store_true", help="hide progress bars")
     be.set_defaults(func=_bench)
 
 
 def _eval(args) -> int:
     try:
         return _eval_inner(args)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, OSError) as exc:
         return _fail("eval", exc)
 
 
@@ -99,12 +120,9 @@ def _eval_inner(args) -> int:
     from . import harness
     from .finetune import load_level_policy
 
-    levels = tuple(_csv(args.levels)) if args.levels else kenv.LEVEL_NAMES
-    methods = tuple(_csv(args.methods)) if args.methods else harness.PAPER_METHODS
-    try:
-        delays = tuple(int(d) for d in _csv(args.delays))
-    except ValueError:
-        raise ValueError(f"--delays must be comma-separated integers, got {args.delays!r}") from None
+    levels = tuple(args.levels) if args.levels else kenv.LEVEL_NAMES
+    methods = tuple(args.methods) if args.methods else harness.PAPER_METHODS
+    delays = tuple(args.delays)
     config = harness.EvalConfig(levels=levels, methods=methods, delays=delays, episodes=args.episodes,
                                 seed=args.seed, levels_dir=args.levels_dir)
     kenv.resolve_levels_dir(args.levels_dir, config.levels)  # clear error before anything heavy
@@ -120,8 +138,6 @@ def _eval_inner(args) -> int:
     fresh = None
     if args.policy_dir is None:
         seed = 0 if args.init_seed is None else args.init_seed
-        if seed < 0:
-            raise ValueError(f"--init-seed must be an integer >= 0, got {seed}")
         fresh = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM, config=PolicyConfig(),
                            rngs=nnx.Rngs(seed))
 
@@ -146,7 +162,7 @@ def _eval_inner(args) -> int:
 def _finetune(args) -> int:
     try:
         return _finetune_inner(args)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, OSError) as exc:
         return _fail("finetune", exc)
 
 
@@ -165,11 +181,19 @@ def _finetune_inner(args) -> int:
     if not data_dir.is_dir():
         raise FileNotFoundError(f"--data {data_dir} is not a directory")
     if args.levels:
-        levels = _csv(args.levels)
+        levels = list(args.levels)
     else:
         levels = [lv for lv in kenv.LEVEL_NAMES if (data_dir / kdata.expert_data_filename(lv)).is_file()]
         if not levels:
             raise FileNotFoundError(f"no worlds_l_<level>.npz expert data files in {data_dir}")
+    from .finetune import find_bc_file
+
+    for lv in levels:  # every level's inputs exist before the first one trains
+        if lv not in kenv.LEVEL_NAMES:
+            raise ValueError(f"--levels entry {lv!r} is not a level; choose from {', '.join(kenv.LEVEL_NAMES)}")
+        if not (data_dir / kdata.expert_data_filename(lv)).is_file():
+            raise FileNotFoundError(f"--data {data_dir} has no {kdata.expert_data_filename(lv)}")
+        find_bc_file(args.bc, lv)
     for lv in levels:
         meta = finetune_level(data_dir, args.bc, lv, args.method, args.out, window=window,
                               d_max=args.d_max, batch_size=args.batch_size, learning_rate=args.lr,
@@ -185,7 +209,7 @@ def _bench(args) -> int:
         res = harness.bench_harness(args.level, num_envs=args.num_envs, method=args.method, seed=args.seed,
                                     levels_dir=args.levels_dir, repeats=args.repeats,
                                     progress=not args.no_progress)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, OSError) as exc:
         return _fail("bench", exc)
     print(f"level {res['level']}, {res['num_envs']} envs, {res['env_steps']} env steps, method {res['method']}, "
           f"policy {res['policy_params']:,} params, {res['num_devices']} device(s): {res['device']}")
@@ -195,5 +219,10 @@ def _bench(args) -> int:
           f"compile {res['bare_compile_s']:.1f} s)")
     print(f"ratio harness / bare: {res['ratio']:.3f}")
     if args.out:
-        Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+        try:
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.out).write_text(json.dumps(res, indent=2) + "\n")
+        except OSError as exc:
+            return _fail("bench", exc)
+        print(f"wrote {args.out}")
     return 0

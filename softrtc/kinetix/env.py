@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
 import numbers
 import os
@@ -24,7 +25,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from kinetix.environment.env import make_kinetix_env
+# kinetix imports grain, which warns on every start that its worker profiling needs a newer jaxlib;
+# softrtc never uses grain workers, so that one notice is dropped (other absl warnings still show).
+logging.getLogger("absl").addFilter(
+    lambda record: not str(record.msg).startswith("Grain multiprocess worker profiling"))
+
+from kinetix.environment.env import make_kinetix_env  # noqa: E402
 from kinetix.environment.env_state import EnvParams, StaticEnvParams
 from kinetix.environment.spaces import ActionType, ObservationType
 from kinetix.util.saving import load_from_json_file

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 
+from .._cli_util import int_in, real_in
 from . import endpoints, metrics
 from .endpoints import delay_scaled, fixed, hard, offset
 from .executor import execute_chunks
@@ -15,13 +17,24 @@ from .velocity import ReferenceVelocityField
 from .weights import SoftWindow, hard_weights, prefix_weights, soft_weights
 
 
+# Options each rule uses, with their defaults; an option given for a rule that ignores it is an error.
+_RULE_OPTIONS = {"delay_scaled": {"lam": 2.0, "h_max": 5}, "offset": {"length": 1, "h_max": 5},
+                 "fixed": {"length": 1}, "hard": {}}
+
+
 def _rule_from_args(args):
+    used = _RULE_OPTIONS[args.rule]
+    for name in ("lam", "h_max", "length"):
+        if getattr(args, name) is not None and name not in used:
+            raise ValueError(f"--{name.replace('_', '-')} does not apply to --rule {args.rule} "
+                             f"(it takes {', '.join('--' + k.replace('_', '-') for k in used) or 'no options'})")
+    v = {k: (getattr(args, k) if getattr(args, k) is not None else dflt) for k, dflt in used.items()}
     if args.rule == "delay_scaled":
-        return delay_scaled(args.lam, args.h_max)
+        return delay_scaled(v["lam"], v["h_max"])
     if args.rule == "offset":
-        return offset(args.length, args.h_max)
+        return offset(v["length"], v["h_max"])
     if args.rule == "fixed":
-        return fixed(args.length)
+        return fixed(v["length"])
     return hard()
 
 
@@ -82,15 +95,23 @@ def demo() -> int:
 
 def add_subparsers(sub) -> None:
     p = sub.add_parser("weights", help="print the Soft RTC weight table of a window ([W-7])")
-    p.add_argument("--H", type=int, default=8, help="chunk horizon (default 8)")
-    p.add_argument("--s", type=int, default=4, help="execute horizon (default 4)")
-    p.add_argument("--rule", choices=endpoints.RULES, default="delay_scaled")
-    p.add_argument("--lam", type=float, default=2.0, help="delay multiplier (delay_scaled)")
-    p.add_argument("--h-max", type=int, default=5, help="maximum endpoint (delay_scaled, offset)")
-    p.add_argument("--length", type=int, default=1, help="L (offset) or h (fixed)")
-    p.add_argument("--schedule", choices=("zeros", "ones", "linear", "exp"), default="linear")
-    p.add_argument("--parametrization", choices=("rtc", "paper"), default="rtc")
-    p.add_argument("--overflow", choices=("clip", "zeros"), default="clip")
+    mw = endpoints.MAX_WINDOW
+    p.add_argument("--H", type=int_in("value", 1, mw), default=8, help=f"chunk horizon, 1 .. {mw} (default 8)")
+    p.add_argument("--s", type=int_in("value", 1, mw), default=4, help="execute horizon, 1 .. H (default 4)")
+    p.add_argument("--rule", choices=endpoints.RULES, default="delay_scaled",
+                   help="endpoint rule of the window (default delay_scaled)")
+    p.add_argument("--lam", type=real_in("value", 0.0, float(mw)), default=None,
+                   help="delay multiplier of delay_scaled (default 2)")
+    p.add_argument("--h-max", type=int_in("value", 0, mw), default=None,
+                   help="maximum endpoint of delay_scaled and offset, <= H (default 5)")
+    p.add_argument("--length", type=int_in("value", 0, mw), default=None,
+                   help="L of offset or h of fixed (default 1)")
+    p.add_argument("--schedule", choices=("zeros", "ones", "linear", "exp"), default="linear",
+                   help="schedule on the window (default linear)")
+    p.add_argument("--parametrization", choices=("rtc", "paper"), default="rtc",
+                   help="window parametrization (default rtc)")
+    p.add_argument("--overflow", choices=("clip", "zeros"), default="clip",
+                   help="window past the overlap (default clip)")
     p.set_defaults(func=_weights_cmd)
     e = sub.add_parser("examples", help="print the reference's worked examples")
     e.set_defaults(func=lambda args: demo())
@@ -101,6 +122,6 @@ def _weights_cmd(args) -> int:
         window = SoftWindow(_rule_from_args(args), args.schedule, args.parametrization, args.overflow)
         print(weights_table(args.H, args.s, window))
     except ValueError as exc:
-        print(f"softrtc weights: {exc}")
+        print(f"softrtc weights: error: {exc}", file=sys.stderr)
         return 2
     return 0

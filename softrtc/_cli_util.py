@@ -1,0 +1,134 @@
+"""Argument types shared by the ``softrtc`` subcommands ([N-7] for the command line).
+
+Each factory returns an ``argparse`` type whose error names the option and its
+allowed range, so a bad value stops the command before any work starts. Output
+paths are checked up front too: a command that runs for minutes must not fail
+only when it writes its result.
+
+>>> int_in("value", 1, 10)("3")
+3
+>>> comma_list("value", int_in("each entry", 0, 8))("0,2,4")
+[0, 2, 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+from typing import Callable
+
+
+def _range(lo, hi) -> str:
+    if lo is not None and hi is not None:
+        return f" in [{lo}, {hi}]"
+    if lo is not None:
+        return f" >= {lo}"
+    return f" <= {hi}" if hi is not None else ""
+
+
+def int_in(what: str, lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """An integer in [lo, hi] (either bound may be None); ``what`` names it in the message (argparse adds the option)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be an integer{_range(lo, hi)}, got {text!r}") from None
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"{what} must be an integer{_range(lo, hi)}, got {value}")
+        return value
+    return parse
+
+
+def real_in(what: str, lo: float | None = None, hi: float | None = None) -> Callable[[str], float]:
+    """A finite real number in [lo, hi]."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"{what} must be a finite number{_range(lo, hi)}, got {text!r}")
+        return value
+    return parse
+
+
+def comma_list(what: str, item: Callable[[str], object] = str, *, unique: bool = True) -> Callable[[str], list]:
+    """A non-empty comma-separated list; empty entries (``1,,2``, ``2,``) and, with ``unique``, repeats are errors."""
+    def parse(text: str) -> list:
+        parts = [p.strip() for p in text.split(",")]
+        if not text.strip() or any(not p for p in parts):
+            raise argparse.ArgumentTypeError(f"{what} must be a comma-separated list without empty entries, "
+                                             f"got {text!r}")
+        values = [item(p) for p in parts]
+        if unique and len(set(values)) != len(values):
+            raise argparse.ArgumentTypeError(f"{what} must not repeat an entry, got {text!r}")
+        return values
+    return parse
+
+
+def _first_existing(path: Path) -> Path:
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def output_file() -> Callable[[str], str]:
+    """A file the command will write: not empty, not a directory, inside a writable (or creatable) directory."""
+    def parse(text: str) -> str:
+        if not text:
+            raise argparse.ArgumentTypeError(f"must be a file path, got an empty string")
+        path = Path(text)
+        if path.is_dir():
+            raise argparse.ArgumentTypeError(f"{text} is a directory; expected a file path")
+        base = _first_existing(path.parent)
+        if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
+            raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} is not a writable directory")
+        return text
+    return parse
+
+
+def output_dir() -> Callable[[str], str]:
+    """A directory the command will write into: not empty, not an existing file, creatable or writable."""
+    def parse(text: str) -> str:
+        if not text:
+            raise argparse.ArgumentTypeError(f"must be a directory path, got an empty string")
+        path = Path(text)
+        if path.exists() and not path.is_dir():
+            raise argparse.ArgumentTypeError(f"{text} is a file; expected a directory")
+        base = _first_existing(path)
+        if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
+            raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} is not a writable directory")
+        return text
+    return parse
+
+
+def input_dir() -> Callable[[str], str]:
+    """An existing directory to read from."""
+    def parse(text: str) -> str:
+        if not text:
+            raise argparse.ArgumentTypeError(f"must be a directory path, got an empty string")
+        if not Path(text).is_dir():
+            what = "is not a directory" if Path(text).exists() else "does not exist"
+            raise argparse.ArgumentTypeError(f"{text} {what}")
+        return text
+    return parse
+
+
+def nonempty() -> Callable[[str], str]:
+    """Any non-empty string."""
+    def parse(text: str) -> str:
+        if not text.strip():
+            raise argparse.ArgumentTypeError("must not be empty")
+        return text
+    return parse
+
+
+def group_help(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
+    """``func`` of a command group run without a subcommand: print its help, exit status 2 (a usage error)."""
+    def show(args) -> int:
+        parser.print_help()
+        return 2
+    return show

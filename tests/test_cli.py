@@ -1,0 +1,139 @@
+"""The command line rejects bad input in one line before any work starts ([N-7]); tests that run nothing heavy."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from softrtc import _cli_util as cu
+from softrtc.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def status(argv):
+    try:
+        return main(argv)
+    except SystemExit as exc:  # argparse: usage, then one error line
+        return exc.code
+
+
+def last_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    return err.strip().splitlines()[-1]
+
+
+def test_argument_types_name_the_range():
+    """N-7: the shared argument types reject what they must, with the allowed range in the message."""
+    import argparse
+
+    assert cu.int_in("x", 1, 3)("2") == 2 and cu.real_in("x", 0.0, 1.0)("0.5") == 0.5
+    for bad, parse in (("0", cu.int_in("x", 1, 3)), ("2.5", cu.int_in("x", 1, 3)), ("nan", cu.real_in("x", 0, 1)),
+                       ("inf", cu.real_in("x")), ("", cu.nonempty()), ("1,,2", cu.comma_list("x", int)),
+                       ("2,", cu.comma_list("x", int)), ("1,1", cu.comma_list("x", int)), ("", cu.output_file()),
+                       ("", cu.output_dir()), ("", cu.input_dir())):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse(bad)
+    with pytest.raises(argparse.ArgumentTypeError, match=r"in \[1, 3\], got 0"):
+        cu.int_in("x", 1, 3)("0")
+    assert cu.comma_list("x", int, unique=False)("1,1") == [1, 1]
+
+
+def test_output_and_input_paths_are_checked_up_front(tmp_path):
+    """N-7: an output that cannot be written is an error before the work, not after it."""
+    import argparse
+
+    f = tmp_path / "afile"
+    f.write_text("x")
+    assert cu.output_file()(str(tmp_path / "new" / "deeper" / "r.json")) == str(tmp_path / "new" / "deeper" / "r.json")
+    assert cu.output_dir()(str(tmp_path / "new")) == str(tmp_path / "new")
+    for parse, bad in ((cu.output_file(), str(tmp_path)), (cu.output_file(), str(f / "x.json")),
+                       (cu.output_dir(), str(f)), (cu.input_dir(), str(f)), (cu.input_dir(), str(tmp_path / "none"))):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse(bad)
+    assert not (tmp_path / "new").exists()  # checking creates nothing
+
+
+@pytest.mark.parametrize("argv, word", [
+    (["weights", "--H", "0"], "--H"),
+    (["weights", "--H", "2000000000", "--s", "1"], "--H"),
+    (["weights", "--lam", "nan"], "--lam"),
+    (["weights", "--rule", "hard", "--lam", "3"], "--lam does not apply to --rule hard"),
+    (["weights", "--rule", "fixed", "--h-max", "3"], "--h-max does not apply to --rule fixed"),
+    (["weights", "--H", "9", "--h-max", "12"], "h_max"),
+    (["conformance", "generate", "--out", ""], "--out"),
+    (["conformance", "generate", "--out", "README.md"], "--out"),
+    (["conformance", "run", "--impl", "reference", "--only", "nosuch"], "'nosuch' is not an interface function"),
+    (["conformance", "run", "--impl", "reference", "--only", ","], "--only"),
+    (["conformance", "run", "--impl", "reference", "--vectors", "README.md"], "is not a directory"),
+    (["conformance", "run", "--impl", "reference", "--report", ""], "--report"),
+    (["bench", "runtime", "--batch-sizes", "1,,2"], "--batch-sizes"),
+    (["bench", "vjp", "--out", "softrtc"], "--out"),
+    (["arm", "study", "--max-steps", "2000"], "--max-steps"),
+    (["arm", "study", "--latency-ms", "-5"], "--latency-ms"),
+    (["arm", "study", "--trials", "20000"], "--trials"),
+    (["arm", "study", "--checkpoints", "/nonexistent"], "--checkpoints"),
+    (["arm", "study", "--out", "README.md"], "--out"),
+    (["arm", "train", "--seed", "2147483647"], "--seed"),
+    (["arm", "train", "--steps", "0"], "integer in [1, 10000000], got 0"),
+    (["arm", "expert", "--seed0", "99999999999999999999"], "--seed0"),
+])
+def test_bad_options_exit_2_with_one_line(argv, word, capsys):
+    """N-7, CF-19, B-10: each bad option exits with status 2 and names itself; no traceback."""
+    assert status(argv) == 2
+    line = last_error_line(capsys)
+    assert line.startswith("softrtc ") and word in line, line
+
+
+def test_malformed_vector_files_are_one_line_errors(tmp_path, capsys):
+    """CF-2, CF-16: a vector file of the wrong structure stops the run with a message naming file and case."""
+    for text, word in (("[1]", "expected a JSON object"), ('{"format_version": "1.0", "cases": [5]}', "case 0"),
+                       ('{"format_version": "1.0", "cases": [{"id": "E.x.y", "function": "endpoint", '
+                        '"requirements": 5, "args": {}, "tolerance": {}, "expected": {}}]}', "'requirements'")):
+        (tmp_path / "a.json").write_text(text)
+        assert status(["conformance", "run", "--impl", "reference", "--vectors", str(tmp_path)]) == 2
+        line = last_error_line(capsys)
+        assert "a.json" in line and word in line, line
+
+
+def test_groups_without_a_subcommand_print_help_and_exit_2(capsys):
+    """N-7: `softrtc arm`, `kinetix`, `bench`, `conformance` alone are usage errors (status 2) that show the help."""
+    for group in ("arm", "kinetix", "bench", "conformance"):
+        assert status([group]) == 2
+        assert "usage: softrtc " + group in capsys.readouterr().out
+
+
+def test_library_errors_become_one_line(monkeypatch, capsys):
+    """N-7: a ValueError or OSError from a command ends as `softrtc CMD: error: ...`, status 2, no traceback;
+    SOFTRTC_TRACEBACK=1 shows the traceback."""
+    import softrtc.reference.cli as rcli
+
+    def boom():
+        raise OSError("disk full")
+
+    monkeypatch.setattr(rcli, "demo", boom)
+    assert status(["examples"]) == 2
+    assert last_error_line(capsys) == "softrtc examples: error: disk full"
+    monkeypatch.setenv("SOFTRTC_TRACEBACK", "1")
+    with pytest.raises(OSError, match="disk full"):
+        main(["examples"])
+
+
+def test_python_m_conformance_names_itself():
+    """CF-19: `python -m softrtc.conformance` shows its own name once in the usage line."""
+    out = subprocess.run([sys.executable, "-m", "softrtc.conformance", "run", "--help"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.startswith("usage: python -m softrtc.conformance run ")
+    res = subprocess.run([sys.executable, "-m", "softrtc.conformance", "run", "--impl", "reference", "--only",
+                          "endpoint"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.splitlines()[-1].startswith("PASS: "), res.stdout + res.stderr
+
+
+def test_conformance_report_is_written(tmp_path):
+    """CF-14: --report writes JSON into a directory it creates."""
+    out = tmp_path / "sub" / "r.json"
+    assert status(["conformance", "run", "--impl", "reference", "--only", "endpoint", "--report", str(out)]) == 0
+    assert json.loads(out.read_text())["counts"]["fail"] == 0
