@@ -47,7 +47,7 @@ def _delay(text: str):
 def _common_options(parser, noun: str, out: str) -> None:
     """Options that `bench runtime` and `bench vjp` share, with the same meaning ([B-10], [B-12])."""
     parser.add_argument("--calls", type=int, default=200, help=f"timed calls per {noun} and batch size (default 200)")
-    parser.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation (default 5)")
+    parser.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation, >= 1 (default 5)")
     parser.add_argument("--batch-sizes", type=_batch_sizes, default=(1, 32), help="comma-separated (default 1,32)")
     parser.add_argument("--delay", type=_delay, default=None,
                         help="'rotate' (default: d = 0 .. min(s, H - s) in turn across calls) or a fixed delay")

@@ -176,7 +176,11 @@ def _finetune_inner(args) -> int:
     if args.window is not None:
         if args.method != "soft":
             raise ValueError("--window is only used with --method soft")
-        window = harness.parse_method("train_soft:" + args.window).window
+        try:
+            window = harness.parse_method("train_soft:" + args.window).window
+        except ValueError:
+            raise ValueError(f"--window {args.window!r} is not a soft window: expected delay_scaled:LAM[:H_MAX], "
+                             f"offset:L[:H_MAX], fixed:H or hard, optionally followed by ':zeros'") from None
     data_dir = Path(args.data)
     if not data_dir.is_dir():
         raise FileNotFoundError(f"--data {data_dir} is not a directory")
