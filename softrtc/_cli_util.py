@@ -41,15 +41,18 @@ def int_in(what: str, lo: int | None = None, hi: int | None = None) -> Callable[
     return parse
 
 
-def real_in(what: str, lo: float | None = None, hi: float | None = None) -> Callable[[str], float]:
-    """A finite real number in [lo, hi]."""
+def real_in(what: str, lo: float | None = None, hi: float | None = None, *,
+            lo_open: bool = False) -> Callable[[str], float]:
+    """A finite real number in [lo, hi], or in (lo, hi] with ``lo_open``."""
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not math.isfinite(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
-            raise argparse.ArgumentTypeError(f"{what} must be a finite number{_range(lo, hi)}, got {text!r}")
+        below = lo is not None and (value <= lo if lo_open else value < lo)
+        if not math.isfinite(value) or below or (hi is not None and value > hi):
+            where = f" in ({lo}, {hi}]" if lo_open and lo is not None and hi is not None else _range(lo, hi)
+            raise argparse.ArgumentTypeError(f"{what} must be a finite number{where}, got {text!r}")
         return value
     return parse
 

@@ -40,6 +40,9 @@ def test_argument_types_name_the_range():
     with pytest.raises(argparse.ArgumentTypeError, match=r"in \[1, 3\], got 0"):
         cu.int_in("x", 1, 3)("0")
     assert cu.comma_list("x", int, unique=False)("1,1") == [1, 1]
+    with pytest.raises(argparse.ArgumentTypeError, match=r"in \(0.0, 1.0\], got '0'"):
+        cu.real_in("x", 0.0, 1.0, lo_open=True)("0")
+    assert cu.real_in("x", 0.0, 1.0, lo_open=True)("1") == 1.0
 
 
 def test_output_and_input_paths_are_checked_up_front(tmp_path):

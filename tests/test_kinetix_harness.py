@@ -350,6 +350,10 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
           "--levels", "grasp_easy,catapult", "--out", str(tmp_path / "ft")], "grasp_easy"),
         (["kinetix", "finetune", "--data", str(tmp_path), "--bc", str(tmp_path), "--method", "hard",
           "--levels", ",", "--out", str(tmp_path / "ft")], "--levels"),
+        (["kinetix", "finetune", "--data", str(tmp_path), "--bc", str(tmp_path), "--method", "soft",
+          "--window", "bogus", "--out", str(tmp_path / "ft")], "--window 'bogus' is not a soft window"),
+        (["kinetix", "finetune", "--data", str(tmp_path), "--bc", str(tmp_path), "--method", "soft",
+          "--lr", "0", "--out", str(tmp_path / "ft")], "--lr"),
         (["kinetix", "bench", "--level", "nope"], "level"),
         (["kinetix", "bench", "--out", str(tmp_path)], "--out"),
     ]

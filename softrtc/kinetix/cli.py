@@ -80,7 +80,7 @@ def add_subparsers(subparsers) -> None:
     ft.add_argument("--epochs", type=int_in("value", 1, 1000), default=1, help="epochs over the data (default 1)")
     ft.add_argument("--batch-size", type=int_in("value", 1, 1 << 20), default=256,
                     help="batch size, capped at the number of examples (default 256)")
-    ft.add_argument("--lr", type=real_in("value", 0.0, 10.0), default=3e-4,
+    ft.add_argument("--lr", type=real_in("value", 0.0, 10.0, lo_open=True), default=3e-4,
                     help="AdamW learning rate, > 0 (default 3e-4)")
     ft.add_argument("--d-max", type=int_in("value", 0, 4096), default=4,
                     help="largest training delay, <= H (default 4)")
