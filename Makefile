@@ -20,7 +20,7 @@ demo: $(STAMP)
 	$(VENV)/bin/softrtc demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	SOFTRTC_REQUIRE_ALL=1 $(PY) -m pytest -q
 
 clean:
 	rm -rf $(VENV)

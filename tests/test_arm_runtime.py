@@ -40,8 +40,9 @@ def _check_aligned(rec, H, s):
         assert j == k - rec.request_step[c], (k, c, j)
         assert 0 <= j < H
         np.testing.assert_array_equal(rec.actions[k], rec.chunks[c][j])
-        if c >= 1 and rec.request_step[c] + j >= rec.request_step[c] + rec.exec_delays[c]:
-            assert j >= rec.delays[c]  # S-5: tokens below the predicted delay are never executed
+        if c >= 1:
+            # R-4, S-5: chunk c runs from token max(predicted, realized delay) on; its committed prefix never.
+            assert j >= rec.exec_delays[c] >= rec.delays[c], (k, c, j, rec.exec_delays[c], rec.delays[c])
 
 
 def test_runtime_realized_delay_alignment_and_prediction():

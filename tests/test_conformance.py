@@ -86,9 +86,10 @@ def test_jax_adapter_passes_quick_subset(vector_files):
 @pytest.mark.slow
 @pytest.mark.skipif(not HAS_JAX, reason="jax not installed")
 def test_jax_adapter_passes_all(vector_files):
-    """[CF-12], [CF-13] The JAX twin passes every case."""
+    """[CF-12], [CF-13] The JAX twin passes every case: none failed, none unsupported."""
     res = runner.run("jax", files=vector_files)
     assert res.ok, runner.format_summary(res)
+    assert res.counts["unsupported"] == 0 and res.counts["pass"] == len(res.cases), res.counts
 
 
 # ---------------------------------------------------------------- broken adapters

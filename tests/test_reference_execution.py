@@ -127,6 +127,7 @@ def test_bootstrap_interval():
     assert (lo, hi) == tuple(np.quantile(means, [0.025, 0.975]))
     assert lo < v.mean() < hi
     assert M.bootstrap_interval(v, seed=0) == M.bootstrap_interval(v, seed=0)
+    assert not np.array_equal(M.bootstrap_indices(5, 100, 0), M.bootstrap_indices(5, 100, 1))  # the seed is used
 
 
 def test_high_delay():

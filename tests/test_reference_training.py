@@ -69,7 +69,7 @@ def test_corruption_formula(an, tau, data):
 
 @given(chunks(), st.floats(0, 1))
 def test_zero_weights_is_plain_flow_matching(an, tau):
-    """C-3, D-4: w = 0 (or d = 0 under any rule) is bitwise the ordinary interpolant."""
+    """C-3, E-6: w = 0 (or d = 0 under any rule) is bitwise the ordinary interpolant."""
     a, n = an
     H = a.shape[0]
     w0 = W.soft_weights(H, 0, W.SoftWindow(delay_scaled(2, min(5, H))), s=H)
