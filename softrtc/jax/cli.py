@@ -69,8 +69,9 @@ def add_subparsers(subparsers) -> None:
                         "(spec/32-runtime-bench.md)")
     _common_options(rt, "row", "runs/bench_runtime.json")
     rt.add_argument("--path", choices=("fast", "straightforward"), default="fast",
-                    help="implementation of the method rows (default fast; the straightforward naive and "
-                         "train-soft samplers are measured as rows of their own either way)")
+                    help="implementation of the method rows (default fast, which also measures the straightforward "
+                         "naive and train-soft samplers as rows of their own; straightforward measures the six "
+                         "method rows on that path only)")
     rt.add_argument("--train-batch", type=int, default=32, help="batch size of the training steps (default 32)")
     rt.add_argument("--train-calls", type=int, default=50,
                     help="timed training steps per method (default 50; 0 skips them)")

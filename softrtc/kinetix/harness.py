@@ -144,7 +144,7 @@ def parse_method(text: str) -> MethodSpec:
     linear), or ``train_soft:<rule>:<params>`` with rule
     ``delay_scaled:LAM[:H_MAX]`` (default h_max 5), ``offset:L[:H_MAX]``
     (default 8), ``fixed:H``, ``hard``; optionally followed by
-    ``:zeros`` to select ``overflow="zeros"`` ([W-6]).
+    ``:zeros`` to select ``overflow="zeros"`` ([W-6]); ``train_soft:zeros`` is the main window zero-padded.
     """
     if not isinstance(text, str) or not text.strip():
         raise ValueError(f"method must be a non-empty string such as 'train_soft:delay_scaled:2', got {text!r}")
@@ -159,6 +159,8 @@ def parse_method(text: str) -> MethodSpec:
     overflow = "clip"
     if parts[-1] == "zeros":
         overflow, parts = "zeros", parts[:-1]
+    if len(parts) == 1:  # train_soft:zeros, the main window with zero padding
+        return MethodSpec("train_soft", ref_weights.SoftWindow(overflow=overflow), label=text.strip())
     rule_name, args = (parts[1], parts[2:]) if len(parts) > 1 else ("delay_scaled", [])
     try:
         if rule_name == "delay_scaled" and 1 <= len(args) <= 2:
