@@ -73,6 +73,8 @@ def test_parse_method_and_tables():
     off = H.parse_method("train_soft:offset:1")
     assert off.window.rule.kind == "offset" and off.window.rule.length == 1 and off.window.rule.h_max == 8
     assert H.parse_method("train_soft:delay_scaled:2:5:zeros").window.overflow == "zeros"
+    zeros = H.parse_method("train_soft:zeros").window  # the main window, zero-padded ([KE-2] grammar)
+    assert zeros.overflow == "zeros" and zeros.rule == soft.window.rule
     assert H.parse_method("train_soft:delay_scaled:1").display == "Train Soft RTC (delay_scaled:1)"
     for bad in ("", "fancy", "naive:offset:1", "train_soft:offset", "train_soft:offset:x", "train_soft:wide:3"):
         with pytest.raises(ValueError, match="method"):
