@@ -637,3 +637,48 @@ def test_twin_api_differences_are_the_listed_ones():
             call()
     np.testing.assert_allclose(np.asarray(JW.soft_weights(8, 3, s=4)),
                                R.weights.soft_weights(8, 3, R.SoftWindow(), s=4), rtol=1e-6)
+
+
+def test_twin_rejects_what_jax_would_clamp_wrap_or_broadcast():
+    """N-7: concrete inputs that XLA would silently clamp (gathers), wrap (int32) or broadcast are rejected."""
+    import flax.nnx as nnx
+
+    from softrtc.jax.policy import FlowPolicy, PolicyConfig
+
+    pol = FlowPolicy(obs_dim=3, action_dim=2, config=PolicyConfig(channel_dim=8, channel_hidden_dim=16,
+                     token_hidden_dim=4, num_layers=1, action_chunk_size=8), rngs=nnx.Rngs(0))
+    obs, noise = jnp.zeros((2, 3)), jnp.zeros((2, 8, 2))
+    table = JS.conditioning_table(pol, JM.method_weight_table("train_soft", 8, 4, None), 3)
+    good = JM.method_tables("train_soft", pol, 8, 4, 3)
+    cases = [
+        (lambda: JS.select_conditioning(table, 5), r"^d must be an integer in \[0, 4\]"),
+        (lambda: JS.select_conditioning(table, jnp.array([1, -1])), r"^d entries must be integers in \[0, 4\]"),
+        (lambda: JM.generate_chunk_conditioned("train_soft", pol, obs, noise, noise, 4, 2, 3,
+                                               tables=JM.method_tables("train_soft", pol, 8, 2, 3)),
+         r"^tables\['weights'\] must have shape \[5, 8\]"),
+        (lambda: JM.generate_chunk_conditioned("train_soft", pol, obs, noise, noise, 4, 2, 5, tables=good),
+         r"^tables\['cond'\] must have leading axes \[5, 5\]"),
+        (lambda: JS.naive_sample_conditioned(pol, obs, noise, 2, cond=JS.naive_conditioning(pol, 3)),
+         r"^cond must have leading axes \[2\]"),
+        (lambda: JX.execute_chunks(np.zeros((2, 8, 1)), np.array([0, 2**32 + 1]), 4), "delays"),
+        (lambda: JMt.is_high_delay(np.int64(2**32 + 3)), r"^d entries must be integers"),
+        (lambda: JMt.switch_mask(np.array([0, 2**32])), "chunk_index"),
+        (lambda: JG.guidance_weight(0.5, max_guidance=1e300), "within float32 range"),
+        (lambda: JC.corrupt(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros(4), np.zeros(3)), "^tau must have"),
+        (lambda: JV.to_flipped_time("0.5"), "real numeric array"),
+        (lambda: JV.to_flipped_time(np.array([0.5 + 1j])), "real numeric array"),
+        (lambda: JMt.standard_error([True, False]), "real numeric array"),
+        (lambda: JE.endpoint(JE.EndpointRule(lam=jnp.float32(np.nan), h_max=jnp.int32(3), length=jnp.int32(0),
+                                             kind="delay_scaled"), 1), r"^rule.lam must be"),
+        (lambda: JW.soft_weights(8, 1, JW.SoftWindow(JE.EndpointRule(
+            lam=jnp.float32(1), h_max=jnp.int32(-5), length=jnp.int32(0), kind="delay_scaled")), 4),
+         r"^rule.h_max must be"),
+        (lambda: JE.endpoint(JE.EndpointRule(lam=jnp.float32(1), h_max=jnp.int32(3), length=jnp.int32(0),
+                                             kind="bogus"), 1), r"^rule.kind must be one of"),
+    ]
+    for call, pattern in cases:
+        with pytest.raises(ValueError, match=pattern):
+            call()
+    # What is valid still runs.
+    assert JM.generate_chunk_conditioned("train_soft", pol, obs, noise, noise, 4, 2, 3, tables=good).shape == (2, 8, 2)
+    assert JC.corrupt(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros(4), 0.5)[0].shape == (4, 2)

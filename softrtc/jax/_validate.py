@@ -28,6 +28,9 @@ def is_traced(value) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(value))
 
 
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+
+
 def int_value(name: str, value, lo: int | None = None, hi: int | None = None, *,
               dtype=jnp.int32) -> jax.Array:
     """A scalar integer argument that may be traced ([N-7]).
@@ -45,6 +48,9 @@ def int_value(name: str, value, lo: int | None = None, hi: int | None = None, *,
         if value.ndim != 0 or not np.issubdtype(value.dtype, np.integer):
             raise ValueError(f"{name} must be a scalar integer{_ref._range(lo, hi)}, got {value!r}")
         value = int(value)
+    # The value becomes int32: a bound the caller left open is int32's own, so nothing wraps.
+    lo = INT32_MIN if lo is None else lo
+    hi = INT32_MAX if hi is None else hi
     return jnp.asarray(check_int(name, value, lo, hi), dtype)
 
 
@@ -61,7 +67,11 @@ def real_value(name: str, value, lo: float | None = None, hi: float | None = Non
         value = value.item()
     if not isinstance(value, numbers.Real):
         raise ValueError(f"{name} must be a finite real number, got {value!r}")
-    return jnp.asarray(check_real(name, value, lo, hi, lo_open, hi_open), jnp.float32)
+    with np.errstate(over="ignore"):  # beyond float32 becomes inf, rejected below (NumPy: no tracer under jit)
+        f32 = np.float32(check_real(name, value, lo, hi, lo_open, hi_open))
+    if not np.isfinite(f32):
+        raise ValueError(f"{name} must be a finite real number within float32 range, got {value!r}")
+    return jnp.asarray(f32)
 
 
 def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
@@ -75,7 +85,14 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
         if isinstance(value, (bool, np.bool_)) or (hasattr(value, "dtype") and value.dtype == bool):
             raise ValueError(f"{name} must be a numeric array, got a boolean")
         try:
-            value = jnp.asarray(value, dtype)
+            kind = np.asarray(value).dtype.kind
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
+        if kind not in "iuf":  # booleans, complex numbers, strings and objects are not real arrays
+            raise ValueError(f"{name} must be a real numeric array, got dtype {np.asarray(value).dtype}")
+        try:
+            with np.errstate(over="ignore"):  # a value beyond float32 becomes inf, rejected below
+                value = jnp.asarray(value, dtype)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
     else:
@@ -89,7 +106,7 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
     if not is_traced(value) and value.size:
         v = np.asarray(value)
         if not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
+            raise ValueError(f"{name} must contain only finite values (no NaN or inf, none beyond float32 range)")
         if lo is not None and v.min() < lo:
             raise ValueError(f"{name} values must lie in [{lo}, {hi}], got min {v.min()}")
         if hi is not None and v.max() > hi:
@@ -104,7 +121,10 @@ def int_array(name: str, value, shape: tuple | None = None, lo: int | None = Non
         v = np.asarray(value)
         if v.dtype == bool or not np.issubdtype(v.dtype, np.integer):
             raise ValueError(f"{name} must be an integer array, got dtype {v.dtype}")
-        if v.size and ((lo is not None and v.min() < lo) or (hi is not None and v.max() > hi)):
+        # The values become int32: open bounds are int32's own, so nothing wraps.
+        lo = INT32_MIN if lo is None else lo
+        hi = INT32_MAX if hi is None else hi
+        if v.size and (v.min() < lo or v.max() > hi):
             raise ValueError(f"{name} entries must be integers{_ref._range(lo, hi)}, "
                              f"got range [{v.min()}, {v.max()}]")
     elif not jnp.issubdtype(jnp.result_type(value), jnp.integer):

@@ -23,10 +23,12 @@ def token_times(weights, tau) -> jax.Array:
 def _tau(w, tau):
     tau = v.array("tau", tau, lo=0.0, hi=1.0)
     try:
-        jnp.broadcast_shapes(tau.shape + (1,), w.shape)
+        ok = jnp.broadcast_shapes(tau.shape + (1,), w.shape) == w.shape
     except ValueError:
-        raise ValueError(f"tau must have the batch shape of the weights {list(w.shape[:-1])}, "
-                         f"got {list(tau.shape)}") from None
+        ok = False
+    if not ok:  # tau may be shared (a scalar) but must never add batch axes the weights lack
+        raise ValueError(f"tau must have the batch shape of the weights {list(w.shape[:-1])} (or be a scalar), "
+                         f"got {list(tau.shape)}")
     return tau
 
 

@@ -85,10 +85,30 @@ def hard() -> EndpointRule:
     return _rule("hard")
 
 
+def _checked(rule: EndpointRule) -> EndpointRule:
+    """A rule built directly (not by a constructor) gets the constructors' checks ([E-1], [N-7]).
+
+    The kind always; the parameters when concrete (inside ``jit`` they are
+    traced and only their shape and dtype can be checked).
+    """
+    if rule.kind not in RULES:
+        raise ValueError(f"rule.kind must be one of {RULES}, got {rule.kind!r}")
+    specs = (("lam", rule.lam, jnp.floating), ("h_max", rule.h_max, jnp.integer), ("length", rule.length, jnp.integer))
+    for name, value, kind in specs:
+        if jnp.ndim(value) != 0 or not jnp.issubdtype(jnp.result_type(value), kind):
+            raise ValueError(f"rule.{name} must be a scalar of {'float' if kind is jnp.floating else 'integer'} "
+                             f"dtype, got {jnp.result_type(value)} of shape {list(jnp.shape(value))}")
+    if not v.is_traced(rule):
+        v.real_value("rule.lam", float(rule.lam), 0.0, float(MAX_WINDOW))
+        v.int_value("rule.h_max", rule.h_max, 0, MAX_WINDOW)
+        v.int_value("rule.length", rule.length, 0, MAX_WINDOW)
+    return rule
+
+
 def from_reference(rule: _ref.EndpointRule) -> EndpointRule:
     """The JAX rule with the parameters of a (validated) reference rule ([E-1])."""
     if isinstance(rule, EndpointRule):
-        return rule
+        return _checked(rule)
     if not isinstance(rule, _ref.EndpointRule):
         raise ValueError(f"rule must be an EndpointRule, got {type(rule).__name__}")
     return _rule(rule.kind, lam=rule.lam or 0.0, h_max=rule.h_max or 0, length=rule.length or 0)

@@ -87,9 +87,9 @@ def execute_chunks(chunks, delays, s: int) -> dict:
     if C < 1:
         raise ValueError("chunks must hold at least one chunk, got 0")
     s = v.check_int("s", s, 1, H)
+    if not v.is_traced(delays):
+        check_delays(H, s, delays)  # on the caller's integers, before any cast to int32
     ds = v.int_array("delays", delays, shape=(C,))
-    if not v.is_traced(ds):
-        check_delays(H, s, ds)
     n = jnp.arange(C * s)
     c, i = n // s, n % s
     # The first chunk never takes from a previous one ([X-2]), whatever d_0 holds.
@@ -116,12 +116,12 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
         raise ValueError("generate and env_step must be callables")
     H = v.check_int("H", H, 1)
     s = v.check_int("s", s, 1, H)
+    if not v.is_traced(delays):
+        check_delays(H, s, delays)  # on the caller's integers, before any cast to int32
     ds = v.int_array("delays", delays)
     if ds.ndim != 1 or ds.shape[0] < 1:
         raise ValueError(f"delays must have shape [C] with C >= 1, got {list(ds.shape)}")
-    if not v.is_traced(ds):
-        check_delays(H, s, ds)
-    obs0 = jnp.asarray(obs0)
+    obs0 = v.array("obs0", obs0)
 
     def run_segment(state, seg):
         def one(state, a):

@@ -18,7 +18,8 @@ import jax.numpy as jnp
 from softrtc.reference import guidance as _ref
 
 from . import _validate as v
-from .sampler import _at, _runtime, _check_fn, _check_model, _loop, check_batch, euler_times, naive_conditioning
+from .sampler import (_at, _runtime, _check_fn, _check_model, _loop, check_batch, check_leading, euler_times,
+                      naive_conditioning)
 from .weights import PARAMETRIZATIONS, SCHEDULES, _prefix_jit
 
 MAX_GUIDANCE = _ref.MAX_GUIDANCE
@@ -130,6 +131,7 @@ def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     cond = naive_conditioning(model, T) if cond is None else cond
+    check_leading("cond", cond, (T,))
     head = None if guided_tokens is None else _check_guided_tokens(model, guided_tokens, w, x.shape[1])
 
     if head is None:

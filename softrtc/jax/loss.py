@@ -76,6 +76,13 @@ def rtc_loss(velocity_fn, obs, actions, noise, weights, tau, eta=ETA) -> jax.Arr
     """
     if not callable(velocity_fn):
         raise ValueError("velocity_fn must be callable as velocity_fn(obs, x, t) -> v [B, H, A]")
+    B = jnp.shape(actions)[0] if jnp.ndim(actions) == 3 else None
+    if B is None:
+        raise ValueError(f"actions must have shape [B, H, A], got {list(jnp.shape(actions))}")
+    if tuple(jnp.shape(tau)) != (B,):
+        raise ValueError(f"tau must have shape [B={B}] (one flow time per example), got {list(jnp.shape(tau))}")
+    if tuple(jnp.shape(weights))[:1] != (B,) or jnp.ndim(weights) != 2:
+        raise ValueError(f"weights must have shape [B={B}, H], got {list(jnp.shape(weights))}")
     x, tj = corrupt(actions, noise, weights, tau)
     pred = velocity_fn(obs, x, tj)
     return batch_loss(pred, actions, noise, weights, eta)

@@ -26,7 +26,8 @@ from softrtc.reference import methods as _ref
 from . import _validate as v
 from .guidance import guidance_prefix_weights, guided_sample, guided_sample_conditioned
 from .sampler import (naive_conditioning, naive_sample, naive_sample_conditioned, rtc_conditioning,
-                      rtc_sample, rtc_sample_conditioned, select_conditioning, conditioning_table)
+                      rtc_sample, rtc_sample_conditioned, select_conditioning, conditioning_table,
+                      check_leading)
 from .weights import SoftWindow, check_window, hard_weights, soft_weights
 
 METHODS = _ref.METHODS
@@ -125,6 +126,19 @@ def method_tables(method: str, model, H: int, s: int, num_steps: int, window=Non
     return {"weights": w, "cond": naive_conditioning(model, num_steps)}
 
 
+def _check_tables(method: str, tables, H: int, s: int, T) -> None:
+    """``tables`` is :func:`method_tables` of this method, H, s and T ([N-7]); JAX would clamp a mismatch."""
+    if not isinstance(tables, dict) or set(tables) != {"weights", "cond"}:
+        raise ValueError("tables must be the dict returned by method_tables (keys 'weights', 'cond')")
+    D = min(s, H - s) + 1
+    w = tables["weights"]
+    if tuple(jnp.shape(w)) != (D, H):
+        raise ValueError(f"tables['weights'] must have shape [{D}, {H}] (method_tables with H={H}, s={s}), "
+                         f"got {list(jnp.shape(w))}")
+    T = v.check_int("num_steps", T, 1)
+    check_leading("tables['cond']", tables["cond"], (D, T) if method.startswith("train_") else (T,))
+
+
 def delay_rows(method: str, tables: dict) -> tuple:
     """Split :func:`method_tables` into one row per delay: ``rows[d] = {"weights": [H], "cond": ...}`` ([S-6]).
 
@@ -139,6 +153,8 @@ def delay_rows(method: str, tables: dict) -> tuple:
     if not isinstance(tables, dict) or set(tables) != {"weights", "cond"}:
         raise ValueError("tables must be the dict returned by method_tables (keys 'weights', 'cond')")
     w = tables["weights"]
+    if jnp.ndim(w) != 2:
+        raise ValueError(f"tables['weights'] must have shape [D, H], got {list(jnp.shape(w))}")
     # Only training-time tables carry a delay axis; naive and guided samplers share one conditioning.
     per_delay = method.startswith("train_")
     return tuple({"weights": w[d],
@@ -189,6 +205,8 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     _check_first(prior, d)
     if not isinstance(restrict_guidance, bool):
         raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
+    if tables is not None:
+        _check_tables(method, tables, H, s, num_steps)
     naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]
     if prior is not None:
         _delay(H, s, d)  # [X-1] also for naive, which ignores d

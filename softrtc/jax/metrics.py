@@ -81,9 +81,7 @@ def switch_mask(chunk_index) -> jax.Array:
 
     The static-shape form of the reference's ``switch_steps`` (``jnp.nonzero(mask)``).
     """
-    ci = jnp.asarray(chunk_index)
-    if ci.ndim != 1 or not jnp.issubdtype(ci.dtype, jnp.integer):
-        raise ValueError("chunk_index must be a 1-D integer array")
+    ci = v.int_array("chunk_index", chunk_index, shape=(None,))
     return jnp.concatenate([jnp.zeros((1,), bool), ci[1:] != ci[:-1]])
 
 
@@ -139,7 +137,7 @@ def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -
     ``confidence`` is static.
     """
     x = v.array("values", values, ndim=1)
-    idx = jnp.asarray(indices)
+    idx = v.int_array("indices", indices, lo=0, hi=max(x.shape[0] - 1, 0))
     if idx.ndim != 2 or idx.shape[1] != x.shape[0] or not jnp.issubdtype(idx.dtype, jnp.integer):
         raise ValueError(f"indices must be an integer array [B, {x.shape[0]}] with entries in [0, {x.shape[0] - 1}]")
     if not v.is_traced(idx) and idx.size and (int(idx.min()) < 0 or int(idx.max()) >= x.shape[0]):
@@ -163,7 +161,5 @@ def bootstrap_interval(values, num_resamples: int = 10000, seed: int = 0, confid
 
 def is_high_delay(d) -> jax.Array:
     """d in {3, 4} ([M-7]); ``d`` may be traced or an integer array."""
-    d = jnp.asarray(d)
-    if not jnp.issubdtype(d.dtype, jnp.integer):
-        raise ValueError(f"d must be an integer, got dtype {d.dtype}")
+    d = v.int_array("d", d)
     return (d == HIGH_DELAYS[0]) | (d == HIGH_DELAYS[1])

@@ -115,6 +115,21 @@ def _at(tree, k):
     return jax.tree_util.tree_map(lambda a: a[k], tree)
 
 
+def check_leading(name: str, tree, lead: tuple) -> None:
+    """Every leaf of a conditioning tree starts with the axes ``lead`` (e.g. (T,) or (D, T)) ([N-7]).
+
+    A table built for another number of steps or delays would otherwise be
+    indexed out of range, which JAX clamps instead of raising.
+    """
+    leaves = jax.tree_util.tree_leaves(tree)
+    if not leaves:
+        raise ValueError(f"{name} must be a conditioning tree of arrays, got {type(tree).__name__}")
+    for leaf in leaves:
+        if tuple(jnp.shape(leaf)[:len(lead)]) != tuple(lead):
+            raise ValueError(f"{name} must have leading axes {list(lead)} (built for these steps/delays), "
+                             f"got a leaf of shape {list(jnp.shape(leaf))}")
+
+
 # ----------------------------------------------------------------------- straightforward path
 
 
@@ -197,9 +212,14 @@ def conditioning_table(model, weight_table, num_steps: int):
 def select_conditioning(table, d):
     """Rows of a :func:`conditioning_table` for delay ``d``: a scalar gives leaves [T, 1, ...],
     per-example delays [B] give [T, B, ...]. Traced ``d`` must lie in [0, D-1]."""
-    d = jnp.asarray(d)
-    if not jnp.issubdtype(d.dtype, jnp.integer) or d.ndim > 1:
-        raise ValueError(f"d must be an integer scalar or a vector [B], got {d.dtype} of shape {list(d.shape)}")
+    leaves = jax.tree_util.tree_leaves(table)
+    if not leaves:
+        raise ValueError(f"table must be a conditioning_table (a tree of [D, T, ...] arrays), got {table!r}")
+    D = int(jnp.shape(leaves[0])[0])
+    check_leading("table", table, (D,))
+    if jnp.ndim(d) > 1:
+        raise ValueError(f"d must be an integer scalar or a vector [B], got shape {list(jnp.shape(d))}")
+    d = v.int_value("d", d, 0, D - 1) if jnp.ndim(d) == 0 else v.int_array("d", d, lo=0, hi=D - 1)
     if d.ndim == 0:
         return _at(table, d)
     return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a[d][:, :, 0], 0, 1), table)
@@ -214,6 +234,7 @@ def naive_sample_conditioned(model, obs, noise, num_steps: int, *, cond=None,
     _check_model(model)
     obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
     cond = naive_conditioning(model, T) if cond is None else cond
+    check_leading("cond", cond, (T,))
 
     def step(k, x):
         return x + model.apply_conditioned(obs, x, _at(cond, k)) / T
@@ -233,6 +254,7 @@ def rtc_sample_conditioned(model, obs, noise, prior, weights, num_steps: int, *,
     _check_model(model)
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
     cond = rtc_conditioning(model, w, T) if cond is None else cond
+    check_leading("cond", cond, (T,))
     wx = jnp.broadcast_to(w, x.shape[:2])[..., None]
 
     def step(k, x):

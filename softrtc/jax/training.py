@@ -74,6 +74,7 @@ def _to_reference_window(window: Any) -> _ref_w.SoftWindow:
     r = window.rule
     if any(isinstance(a, jax.core.Tracer) for a in (r.lam, r.h_max, r.length)):
         raise ValueError("window must have concrete rule parameters (not traced) in a TrainConfig")
+    _jw.from_reference(window)  # kind and parameter ranges ([E-1]) before the conversion
     if r.kind == "delay_scaled":
         rule = _ref_ep.delay_scaled(float(r.lam), int(r.h_max))
     elif r.kind == "offset":

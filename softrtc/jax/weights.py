@@ -170,6 +170,7 @@ class SoftWindow:
 def from_reference(window) -> SoftWindow:
     """The JAX window of a reference :class:`softrtc.reference.weights.SoftWindow` ([W-7])."""
     if isinstance(window, SoftWindow):
+        _ep.from_reference(window.rule)  # a rule built field by field is checked like a constructed one
         return window
     if not isinstance(window, _ref.SoftWindow):
         raise ValueError(f"window must be a SoftWindow, got {type(window).__name__}")
