@@ -387,3 +387,41 @@ def test_noisy_perturbed_episodes_still_finish(tmp_path):
     assert summary["success_rate"] == 1.0
     # Perturbations actually moved the executed targets far from the labels.
     assert np.max(np.abs(d["executed_action"][:, :3] - d["action"][:, :3])) > 0.2
+
+
+def test_configs_and_normalizer_reject_nan_bools_and_wrong_lengths():
+    """N-7, A-1, A-8, A-13, A-18: no NaN, boolean, negative size or wrong-length field reaches the simulation."""
+    import math
+
+    from softrtc.arm import env as E
+    from softrtc.arm import expert as X
+    from softrtc.arm import policies as P
+
+    bad_configs = [dict(joint_low=(math.nan, -3.0, -math.pi)), dict(joint_low=(-1.0, -1.0)),
+                   dict(base=(math.nan, 0.45)), dict(table_half_width=-1.0), dict(box_inner_widths=(-0.2, 0.14)),
+                   dict(object_min_gap=math.nan), dict(motor_gain=True), dict(link_lengths=(True, 0.28, 0.1)),
+                   dict(box_center_jitter=math.nan), dict(home_ee=(0.0,))]
+    for fields in bad_configs:
+        with pytest.raises(ValueError, match="^config\\."):
+            E.forward_kinematics([0.0, 0.0, 0.0], E.ArmConfig(**fields))
+    for falsy in (0, False, ""):
+        with pytest.raises(ValueError, match="config must be an ArmConfig"):
+            E.forward_kinematics([0.0, 0.0, 0.0], falsy)
+    with pytest.raises(ValueError, match="^q must be"):
+        E.forward_kinematics([True, False, True])
+    with pytest.raises(ValueError, match="^action must be"):
+        E.ArmSortEnv().validate_action([True, False, False, True])
+    for fields in (dict(lookahead=math.nan), dict(carry_height=-5.0), dict(align_tol=True)):
+        with pytest.raises(ValueError, match=f"^{next(iter(fields))} must be"):
+            X.ExpertConfig(**fields)
+    rng = np.random.default_rng(0)
+    norm = P.Normalizer.fit(rng.random((5, P.FEATURE_DIM)), rng.random((5, 4)))
+    with pytest.raises(ValueError, match=r"^actions must have shape \[M >= 2, 4\]"):
+        P.Normalizer.fit(rng.random((5, P.FEATURE_DIM)), rng.random((1, 4)))
+    with pytest.raises(ValueError, match="^actions must be finite with last axis 4"):
+        P.Normalizer.fit(rng.random((5, P.FEATURE_DIM)), rng.random((5, 3)))
+    with pytest.raises(ValueError, match="^features must be finite"):
+        norm.obs(np.full(P.FEATURE_DIM, np.nan))
+    with pytest.raises(ValueError, match="^a must be finite with last axis 4"):
+        norm.act(np.zeros((3, 1)))
+    np.testing.assert_allclose(norm.unact(norm.act(np.ones(4))), np.ones(4))

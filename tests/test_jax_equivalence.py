@@ -676,6 +676,14 @@ def test_twin_rejects_what_jax_would_clamp_wrap_or_broadcast():
         (lambda: JE.endpoint(JE.EndpointRule(lam=jnp.float32(1), h_max=jnp.int32(3), length=jnp.int32(0),
                                              kind="bogus"), 1), r"^rule.kind must be one of"),
     ]
+    vf = lambda o, x, t: x  # noqa: E731
+    cases += [
+        (lambda: JM.generate_chunk("naive", vf, obs, noise, noise, 4, 1, 2, window="bogus"), "^window must be"),
+        (lambda: JM.generate_chunk("naive", vf, obs, noise, jnp.full_like(noise, jnp.nan), 4, 1, 2), "^prior"),
+        (lambda: JM.generate_chunk("naive", vf, obs, noise, np.zeros(5), 4, 1, 2), r"^prior must have shape"),
+        (lambda: JM.generate_chunk("train_soft", vf, obs, noise, noise, 4, jnp.array([1, 1, 1]), 2),
+         r"^d must have shape \[2\]"),
+    ]
     for call, pattern in cases:
         with pytest.raises(ValueError, match=pattern):
             call()

@@ -114,32 +114,64 @@ def _check_int(name: str, value, low: int, high: int | None = None) -> int:
     return int(value)
 
 
+def _reals(name: str, values, n: int, low: float | None = None, strict: bool = False) -> tuple:
+    """``n`` finite real numbers (no booleans), each > low (strict) or >= low."""
+    ok = isinstance(values, (tuple, list)) and len(values) == n and all(
+        isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+        and math.isfinite(x) and (low is None or (x > low if strict else x >= low)) for x in values)
+    if not ok:
+        bound = "" if low is None else f" {'>' if strict else '>='} {low}"
+        raise ValueError(f"config.{name} must be {n} finite numbers{bound}, got {values!r}")
+    return tuple(values)
+
+
+def _real(name: str, value, low: float, strict: bool = False) -> None:
+    """One finite real number (no boolean) > low (strict) or >= low."""
+    try:
+        _reals(name, (value,), 1, low, strict)
+    except ValueError:
+        raise ValueError(f"config.{name} must be a finite number {'>' if strict else '>='} {low}, "
+                         f"got {value!r}") from None
+
+
 def _validate_config(cfg: ArmConfig) -> None:
+    """Every field of an :class:`ArmConfig` ([A-1]..[A-12], [N-7]); NaN, booleans and wrong lengths are errors."""
     if not isinstance(cfg, ArmConfig):
         raise ValueError(f"config must be an ArmConfig, got {type(cfg).__name__}")
     _check_int("config.control_hz", cfg.control_hz, 1, 10_000)
     _check_int("config.substeps", cfg.substeps, 1, 1_000)
     _check_int("config.max_steps", cfg.max_steps, 1, None)
-    for name in ("motor_gain", "motor_max_rate", "motor_max_force", "grasp_radius",
-                 "link_radius", "object_friction", "box_wall_height",
-                 "box_wall_thickness"):
-        v = getattr(cfg, name)
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            raise ValueError(f"config.{name} must be a finite number > 0, got {v!r}")
-    if len(cfg.link_lengths) != NUM_JOINTS or any(not (l > 0) for l in cfg.link_lengths):
-        raise ValueError("config.link_lengths must be 3 positive lengths")
-    if any(lo >= hi for lo, hi in zip(cfg.joint_low, cfg.joint_high)):
+    for name in ("motor_gain", "motor_max_rate", "motor_max_force", "grasp_radius", "link_radius",
+                 "object_friction", "box_wall_height", "box_wall_thickness", "table_half_width"):
+        _real(name, getattr(cfg, name), 0.0, strict=True)
+    for name in ("object_min_gap", "box_center_jitter"):
+        _real(name, getattr(cfg, name), 0.0)
+    _reals("link_lengths", cfg.link_lengths, NUM_JOINTS, 0.0, strict=True)
+    _reals("link_masses", cfg.link_masses, NUM_JOINTS, 0.0, strict=True)
+    low = _reals("joint_low", cfg.joint_low, NUM_JOINTS)
+    high = _reals("joint_high", cfg.joint_high, NUM_JOINTS)
+    if any(lo >= hi for lo, hi in zip(low, high)):
         raise ValueError("config.joint_low must be < config.joint_high for every joint")
-    if len(cfg.object_sizes) != NUM_OBJECTS or len(cfg.object_masses) != NUM_OBJECTS:
-        raise ValueError(f"config.object_sizes and config.object_masses must have {NUM_OBJECTS} entries")
-    for name in ("link_masses", "object_masses"):
-        if any(not (isinstance(m, (int, float)) and math.isfinite(m) and m > 0) for m in getattr(cfg, name)):
-            raise ValueError(f"config.{name} must contain finite numbers > 0")
-    if any(not (w > 0 and h > 0) for w, h in cfg.object_sizes):
-        raise ValueError("config.object_sizes must contain (width, height) pairs > 0")
-    lo, hi = cfg.object_x_range
+    _reals("object_masses", cfg.object_masses, NUM_OBJECTS, 0.0, strict=True)
+    if not isinstance(cfg.object_sizes, (tuple, list)) or len(cfg.object_sizes) != NUM_OBJECTS:
+        raise ValueError(f"config.object_sizes must hold {NUM_OBJECTS} (width, height) pairs, got {cfg.object_sizes!r}")
+    for i, size in enumerate(cfg.object_sizes):
+        _reals(f"object_sizes[{i}]", size, 2, 0.0, strict=True)
+    lo, hi = _reals("object_x_range", cfg.object_x_range, 2)
     if not lo < hi:
         raise ValueError("config.object_x_range must satisfy low < high")
+    _reals("base", cfg.base, 2)
+    _reals("box_centers", cfg.box_centers, 2)
+    _reals("box_inner_widths", cfg.box_inner_widths, 2, 0.0, strict=True)
+    _reals("home_ee", cfg.home_ee, 2)
+
+
+def _config(config) -> ArmConfig:
+    """``config`` checked, or the default for None (not for other falsy values)."""
+    if config is None:
+        return ArmConfig()
+    _validate_config(config)
+    return config
 
 
 def forward_kinematics(q, config: ArmConfig | None = None) -> np.ndarray:
@@ -149,7 +181,9 @@ def forward_kinematics(q, config: ArmConfig | None = None) -> np.ndarray:
     down from the overhead base); each later link adds its joint angle to the
     previous link's world angle.
     """
-    cfg = config or ArmConfig()
+    cfg = _config(config)
+    if np.asarray(q).dtype.kind not in "iuf":
+        raise ValueError(f"q must be a finite real array of shape ({NUM_JOINTS},), got dtype {np.asarray(q).dtype}")
     q = np.asarray(q, dtype=np.float64)
     if q.shape != (NUM_JOINTS,) or not np.all(np.isfinite(q)):
         raise ValueError(f"q must be a finite array of shape ({NUM_JOINTS},), got {q!r}")
@@ -169,7 +203,7 @@ def inverse_kinematics(ee_xy, config: ArmConfig | None = None, tool_angle: float
     Cartesian paths map to continuous joint paths. Unreachable targets raise
     ValueError.
     """
-    cfg = config or ArmConfig()
+    cfg = _config(config)
     p = np.asarray(ee_xy, dtype=np.float64)
     if p.shape != (2,) or not np.all(np.isfinite(p)):
         raise ValueError(f"ee_xy must be a finite array of shape (2,), got {ee_xy!r}")
@@ -382,6 +416,8 @@ class ArmSortEnv:
 
     def validate_action(self, action) -> np.ndarray:
         """Return ``action`` as float64 or raise ValueError ([A-8])."""
+        if np.asarray(action).dtype.kind not in "iuf":  # booleans and strings are not actions
+            raise ValueError(f"action must be {ACTION_DIM} real numbers, got dtype {np.asarray(action).dtype}")
         try:
             a = np.array(action, dtype=np.float64)
         except (TypeError, ValueError):

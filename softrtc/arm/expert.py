@@ -22,6 +22,7 @@ from .env import (
     OBS_DIM,
     OBS_SLICES,
     ArmConfig,
+    _validate_config,
     ArmSortEnv,
     _check_int,
     inverse_kinematics,
@@ -41,6 +42,13 @@ class ExpertConfig:
     grasp_clearance: float = 0.003  # tip height above the part's top when closing
     drop_clearance: float = 0.008  # part bottom height above the box floor at release
 
+    def __post_init__(self):
+        for name in ("carry_height", "lookahead", "align_tol", "lift_tol", "grasp_clearance", "drop_clearance"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or value <= 0:
+                raise ValueError(f"{name} must be a finite number > 0 (metres), got {value!r}")
+
 
 class ScriptedExpert:
     """Stateless pick-and-place expert: ``act(obs) -> action`` ([A-13], [A-14]).
@@ -55,6 +63,7 @@ class ScriptedExpert:
         self.config = ExpertConfig() if config is None else config
         if not isinstance(self.env_config, ArmConfig):
             raise ValueError("env_config must be an ArmConfig")
+        _validate_config(self.env_config)
         if not isinstance(self.config, ExpertConfig):
             raise ValueError("config must be an ExpertConfig")
         self._low = np.array(self.env_config.joint_low)

@@ -34,7 +34,7 @@ from softrtc.jax.training import TrainConfig, train
 from softrtc.jax.weights import SoftWindow
 from softrtc.reference.weights import SoftWindow as RefSoftWindow
 
-from .env import ACTION_DIM, NUM_OBJECTS, OBJECT_TARGET_BOX, OBS_DIM, OBS_SLICES, ArmConfig
+from .env import ACTION_DIM, NUM_OBJECTS, OBJECT_TARGET_BOX, OBS_DIM, OBS_SLICES, ArmConfig, _validate_config
 
 __all__ = [
     "ArmPolicyConfig", "Normalizer", "ArmPolicy", "TRAIN_METHODS", "STUDY_METHODS", "METHOD_LABELS",
@@ -89,9 +89,10 @@ def _check_choice(name, value, choices) -> str:
 
 def action_bounds(env_config: ArmConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper bounds of an action ([A-8]): joint limits, then the gripper range [0, 1]."""
-    cfg = env_config or ArmConfig()
+    cfg = ArmConfig() if env_config is None else env_config
     if not isinstance(cfg, ArmConfig):
         raise ValueError(f"env_config must be an ArmConfig, got {type(cfg).__name__}")
+    _validate_config(cfg)
     return (np.array([*cfg.joint_low, 0.0], np.float64), np.array([*cfg.joint_high, 1.0], np.float64))
 
 
@@ -160,8 +161,24 @@ def _new_model(config: ArmPolicyConfig, seed: int) -> FlowPolicy:
                       rngs=nnx.Rngs(seed))
 
 
+def _real_array(name, value) -> np.ndarray:
+    """``value`` as float64, rejecting booleans, strings and other non-real dtypes ([N-7])."""
+    kind = np.asarray(value).dtype.kind
+    if kind not in "iuf":
+        raise ValueError(f"{name} must be a real numeric array, got dtype {np.asarray(value).dtype}")
+    return np.asarray(value, np.float64)
+
+
+def _rows(name, value, dim) -> np.ndarray:
+    """A finite array whose last axis has ``dim`` entries."""
+    a = _real_array(name, value)
+    if a.ndim < 1 or a.shape[-1] != dim or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite with last axis {dim}, got shape {list(a.shape)}")
+    return a
+
+
 def _stats(name, value, dim) -> np.ndarray:
-    a = np.asarray(value, np.float64)
+    a = _real_array(name, value)
     if a.shape != (dim,) or not np.all(np.isfinite(a)):
         raise ValueError(f"{name} must be a finite vector of shape [{dim}], got shape {list(a.shape)}")
     return a
@@ -186,12 +203,13 @@ class Normalizer:
     @staticmethod
     def fit(features, actions) -> "Normalizer":
         """Mean and std of the data; a std below 1e-3 (a constant entry) is raised to 1 so it is not amplified."""
-        features = np.asarray(features, np.float64)
-        actions = np.asarray(actions, np.float64)
-        if features.ndim != 2 or features.shape[1] != FEATURE_DIM or features.shape[0] < 2:
+        features = _rows("features", features, FEATURE_DIM)
+        actions = _rows("actions", actions, ACTION_DIM)
+        if features.ndim != 2 or features.shape[0] < 2:
             raise ValueError(f"features must have shape [N >= 2, {FEATURE_DIM}], got {list(features.shape)}")
-        if actions.ndim != 2 or actions.shape[1] != ACTION_DIM or actions.shape[0] < 2:
-            raise ValueError(f"actions must have shape [N >= 2, {ACTION_DIM}], got {list(actions.shape)}")
+        # The two statistics are independent: actions may come from more rows (e.g. every label of every chunk).
+        if actions.ndim != 2 or actions.shape[0] < 2:
+            raise ValueError(f"actions must have shape [M >= 2, {ACTION_DIM}], got {list(actions.shape)}")
 
         def std(x):
             s = x.std(axis=0)
@@ -211,13 +229,13 @@ class Normalizer:
         return Normalizer(**{k: np.asarray(v, np.float64) for k, v in data.items()})
 
     def obs(self, features):
-        return (np.asarray(features, np.float64) - self.obs_mean) / self.obs_std
+        return (_rows("features", features, FEATURE_DIM) - self.obs_mean) / self.obs_std
 
     def act(self, a):
-        return (np.asarray(a, np.float64) - self.act_mean) / self.act_std
+        return (_rows("a", a, ACTION_DIM) - self.act_mean) / self.act_std
 
     def unact(self, z):
-        return np.asarray(z, np.float64) * self.act_std + self.act_mean
+        return _rows("z", z, ACTION_DIM) * self.act_std + self.act_mean
 
 
 def chunk_dataset(data: dict, horizon: int) -> dict:

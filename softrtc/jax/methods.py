@@ -33,12 +33,12 @@ from .weights import SoftWindow, check_window, hard_weights, soft_weights
 METHODS = _ref.METHODS
 
 
-def _delay(H, s, d):
+def _delay(H, s, d, B=None):
     """A delay scalar or vector [B]; concrete entries must satisfy [X-1]."""
     hi = min(s, H - s)
     if jnp.ndim(d) == 0:
         return v.int_value("d", d, 0, hi)
-    return v.int_array("d", d, shape=(None,), lo=0, hi=hi)
+    return v.int_array("d", d, shape=(B,), lo=0, hi=hi)
 
 
 def _one(method, H, s, d, window):
@@ -101,7 +101,10 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     s = v.check_int("s", s, 1, H)
     _check_first(prior, d)
     if prior is not None:
-        _delay(H, s, d)  # [X-1] also for naive, which ignores d: a delay the executor cannot run is an error
+        _delay(H, s, d, jnp.shape(noise)[0])  # [X-1] also for naive, which ignores d
+        v.array("prior", prior, shape=jnp.shape(noise))
+    if window is not None:
+        check_window(H, window)
     if prior is None or method == "naive":
         return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
     w = method_weights(method, H, s, d, window)
@@ -209,7 +212,10 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
         _check_tables(method, tables, H, s, num_steps)
     naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]
     if prior is not None:
-        _delay(H, s, d)  # [X-1] also for naive, which ignores d
+        _delay(H, s, d, jnp.shape(noise)[0])  # [X-1] also for naive, which ignores d
+        v.array("prior", prior, shape=jnp.shape(noise))
+    if window is not None:
+        check_window(H, window)
     if prior is None or method == "naive":
         return naive_sample_conditioned(model, obs, noise, num_steps, cond=naive_cond, unroll=unroll)
     if tables is None:
