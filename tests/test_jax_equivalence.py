@@ -677,7 +677,10 @@ def test_twin_rejects_what_jax_would_clamp_wrap_or_broadcast():
                                              kind="bogus"), 1), r"^rule.kind must be one of"),
     ]
     vf = lambda o, x, t: x  # noqa: E731
+    probs = JD.delay_probs("uniform", 0, 4)
     cases += [
+        (lambda: JD.sample_delays(5, probs, 0, 2), "^key must be a JAX PRNG key"),
+        (lambda: JD.sample_delays(jax.random.key(0), probs, 0, 2.0), "^shape must be"),
         (lambda: JM.generate_chunk("naive", vf, obs, noise, noise, 4, 1, 2, window="bogus"), "^window must be"),
         (lambda: JM.generate_chunk("naive", vf, obs, noise, jnp.full_like(noise, jnp.nan), 4, 1, 2), "^prior"),
         (lambda: JM.generate_chunk("naive", vf, obs, noise, np.zeros(5), 4, 1, 2), r"^prior must have shape"),
@@ -687,6 +690,8 @@ def test_twin_rejects_what_jax_would_clamp_wrap_or_broadcast():
     for call, pattern in cases:
         with pytest.raises(ValueError, match=pattern):
             call()
-    # What is valid still runs.
+    # What is valid still runs, also under jit with concrete tables closed over.
+    key = jax.random.key(1)
+    assert np.array_equal(jax.jit(lambda k: JD.sample_delays(k, probs, 0, 3))(key), JD.sample_delays(key, probs, 0, 3))
     assert JM.generate_chunk_conditioned("train_soft", pol, obs, noise, noise, 4, 2, 3, tables=good).shape == (2, 8, 2)
     assert JC.corrupt(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros(4), 0.5)[0].shape == (4, 2)

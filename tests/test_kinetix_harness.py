@@ -76,7 +76,8 @@ def test_parse_method_and_tables():
     zeros = H.parse_method("train_soft:zeros").window  # the main window, zero-padded ([KE-2] grammar)
     assert zeros.overflow == "zeros" and zeros.rule == soft.window.rule
     assert H.parse_method("train_soft:delay_scaled:1").display == "Train Soft RTC (delay_scaled:1)"
-    for bad in ("", "fancy", "naive:offset:1", "train_soft:offset", "train_soft:offset:x", "train_soft:wide:3"):
+    for bad in ("", "fancy", "naive:offset:1", "train_soft:offset", "train_soft:offset:x", "train_soft:wide:3",
+                "train_soft:delay_scaled:1_0", "train_soft:fixed:\uff13"):
         with pytest.raises(ValueError, match="method"):
             H.parse_method(bad)
     assert [H.method_family(m) for m in ref_methods.METHODS] == ["rtc", "guided", "guided", "rtc", "rtc"]

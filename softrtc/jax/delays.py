@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from softrtc.reference import delays as _ref
 
@@ -49,8 +50,8 @@ def delay_cdf(probs) -> jax.Array:
     p = v.array("probs", probs, ndim=1, lo=0.0, hi=1.0)
     if p.shape[0] == 0:
         raise ValueError("probs must be a non-empty table summing to 1, got an empty table")
-    if not v.is_traced(p) and abs(float(jnp.sum(p)) - 1.0) > 1e-6:
-        raise ValueError(f"probs must be a non-empty table summing to 1, got sum {float(jnp.sum(p))}")
+    if not v.is_traced(p) and abs(float(np.sum(np.asarray(p))) - 1.0) > 1e-6:
+        raise ValueError(f"probs must be a non-empty table summing to 1, got sum {float(np.sum(np.asarray(p)))}")
     return _cdf(p)
 
 
@@ -67,8 +68,8 @@ def sample_delay(probs, d_min, u) -> jax.Array:
     c = delay_cdf(probs)
     d_min = v.int_value("d_min", d_min, 0, MAX_DELAY)
     u = v.array("u", u, lo=0.0)
-    if not v.is_traced(u) and u.size and float(jnp.max(u)) >= 1.0:
-        raise ValueError(f"u must lie in [0, 1), got max {float(jnp.max(u))}")
+    if not v.is_traced(u) and u.size and float(np.max(np.asarray(u))) >= 1.0:
+        raise ValueError(f"u must lie in [0, 1), got max {float(np.max(np.asarray(u)))}")
     return _inverse_cdf(c, d_min, u)
 
 
@@ -83,7 +84,12 @@ def sample_delays(key, probs, d_min, shape=()) -> jax.Array:
     Draws ``u = jax.random.uniform(key, shape)`` in [0, 1) and applies
     :func:`sample_delay`, so a caller holding the same ``u`` gets the same d.
     """
-    if isinstance(shape, int):
-        shape = (shape,)
+    if isinstance(shape, (int, np.integer)) and not isinstance(shape, bool):
+        shape = (int(shape),)
+    if not isinstance(shape, (tuple, list)):
+        raise ValueError(f"shape must be an integer or a tuple of integers >= 0, got {shape!r}")
     shape = tuple(v.check_int("shape entry", s, 0) for s in shape)
+    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+                                            or (key.dtype == jnp.uint32 and key.shape == (2,)))):
+        raise ValueError(f"key must be a JAX PRNG key (jax.random.key or jax.random.PRNGKey), got {key!r}")
     return sample_delay(probs, d_min, jax.random.uniform(key, shape, jnp.float32))

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from softrtc.reference import guidance as _ref
 
@@ -48,8 +49,8 @@ def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:
     gives c = +inf without evaluating 1/0 in the selected lane, so no NaN appears.
     """
     t = v.array("t", t, lo=0.0)
-    if not v.is_traced(t) and t.size and float(jnp.max(t)) >= 1.0:
-        raise ValueError(f"t must lie in [0, 1), got max {float(jnp.max(t))}")
+    if not v.is_traced(t) and t.size and float(np.max(np.asarray(t))) >= 1.0:
+        raise ValueError(f"t must lie in [0, 1), got max {float(np.max(np.asarray(t)))}")
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     safe_t = jnp.where(t == 0.0, 1.0, t)
     c = jnp.where(t == 0.0, jnp.inf, (1.0 - t) / safe_t)

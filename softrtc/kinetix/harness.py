@@ -27,6 +27,7 @@ import copy
 import csv
 import dataclasses
 import math
+import re
 import os
 import sys
 import time
@@ -162,6 +163,9 @@ def parse_method(text: str) -> MethodSpec:
     if len(parts) == 1:  # train_soft:zeros, the main window with zero padding
         return MethodSpec("train_soft", ref_weights.SoftWindow(overflow=overflow), label=text.strip())
     rule_name, args = (parts[1], parts[2:]) if len(parts) > 1 else ("delay_scaled", [])
+    # Plain ASCII decimals only: Python's int/float would also take "1_0" (10) or other scripts' digits.
+    if not all(re.fullmatch(r"[0-9]+(\.[0-9]+)?", a) for a in args):
+        raise ValueError(f"method {text!r} is not a valid soft window: parameters must be plain decimal numbers")
     try:
         if rule_name == "delay_scaled" and 1 <= len(args) <= 2:
             rule = ref_endpoints.delay_scaled(float(args[0]), int(args[1]) if len(args) > 1 else 5)
