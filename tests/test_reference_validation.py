@@ -183,6 +183,8 @@ def test_flow_time_arguments_are_range_checked():
             fn(np.array([0.5, 7.0]))
     with pytest.raises(ValueError, match=r"^t values must lie in \[0\.0, 1\.0\]"):
         jsampler.blend_time(np.float32(1.5), np.array(w))
+    with pytest.raises(ValueError, match=r"^t must be a scalar or have the batch shape of weights \[2\]"):
+        jsampler.blend_time(np.array([0.5, 0.2, 0.1]), np.zeros((2, 4)))
     with pytest.raises(ValueError, match=r"^t values must lie"):
         F(np.zeros(3), np.zeros((4, 2)), np.full(4, 1.5))
     np.testing.assert_allclose(sampler.blend_time(0.5, w), [1.0, 0.75, 0.5])

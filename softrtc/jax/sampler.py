@@ -56,6 +56,9 @@ def blend_time(t, weights) -> jax.Array:
     """t~_j = w_j + (1 - w_j) t ([S-3]); t a scalar or broadcastable to weights' leading dims."""
     w = v.array("weights", weights, lo=0.0, hi=1.0)
     t = v.array("t", t, lo=0.0, hi=1.0)
+    if t.ndim and t.shape != w.shape[:-1]:
+        raise ValueError(f"t must be a scalar or have the batch shape of weights {list(w.shape[:-1])}, "
+                         f"got {list(t.shape)}")
     return w + (1.0 - w) * t[..., None] if t.ndim else w + (1.0 - w) * t
 
 
