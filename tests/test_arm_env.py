@@ -425,3 +425,13 @@ def test_configs_and_normalizer_reject_nan_bools_and_wrong_lengths():
     with pytest.raises(ValueError, match="^a must be finite with last axis 4"):
         norm.act(np.zeros((3, 1)))
     np.testing.assert_allclose(norm.unact(norm.act(np.ones(4))), np.ones(4))
+
+
+def test_demo_loader_rejects_a_npy_file(tmp_path):
+    """N-7, A-16: a .npy array where the .npz archive is expected is a ValueError naming the path."""
+    p = tmp_path / "x.npy"
+    np.save(p, np.zeros(3))
+    with pytest.raises(ValueError, match="single .npy array"):
+        load_demos(p)
+    with pytest.raises(ValueError, match="existing .npz"):
+        load_demos(tmp_path / "none.npz")

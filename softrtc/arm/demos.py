@@ -142,5 +142,11 @@ def load_demos(path) -> dict:
     """Load a file written by ``generate_demos`` into a dict of arrays ([A-16])."""
     if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
         raise ValueError(f"path must name an existing .npz file, got {path!r}")
-    with np.load(path) as f:
+    try:
+        f = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"path {path!r} is not a readable .npz file: {exc}") from None
+    if not isinstance(f, np.lib.npyio.NpzFile):  # a .npy file loads as one array, not an archive
+        raise ValueError(f"path {path!r} is a single .npy array, expected the .npz archive of generate_demos")
+    with f:
         return {k: f[k] for k in f.files}

@@ -161,7 +161,7 @@ def run_simulated_episode(policy, env_seed: int, delays, key, *, max_steps: int 
         dt=env.config.dt, hold=np.zeros(n, bool))
 
 
-def episode_metrics(record: EpisodeRecord, max_steps: int | None = None) -> dict:
+def episode_metrics(record: EpisodeRecord) -> dict:
     """Per-trial values of the arm study table ([A-24], [M-1], [M-3]).
 
     ``success``, ``completion`` (completed parts / 4), ``completed``,

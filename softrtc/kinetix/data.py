@@ -135,9 +135,10 @@ def load_expert_data(path: str | os.PathLike) -> ExpertData:
         raise FileNotFoundError(f"expert data file {p} does not exist")
     try:
         # allow_pickle=False: the release holds plain numeric arrays only.
-        with np.load(p, allow_pickle=False) as z:
-            if not isinstance(z, np.lib.npyio.NpzFile):
-                raise ValueError(f"path {p} is a single .npy array, expected an .npz archive with keys {list(EXPERT_KEYS)}")
+        z = np.load(p, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):  # a .npy file loads as one array, not an archive
+            raise ValueError(f"path {p} is a single .npy array, expected an .npz archive with keys {list(EXPERT_KEYS)}")
+        with z:
             arrays = {k: z[k] for k in z.files if k in EXPERT_KEYS}
     except (zipfile.BadZipFile, OSError, EOFError) as e:
         raise ValueError(f"path {p} is not a readable .npz archive: {e}") from e
