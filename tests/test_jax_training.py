@@ -287,12 +287,17 @@ def test_step_validates_inputs(soft_step):
         ({"obs": obs}, key, "actions"),
         ((obs, actions), 0, "key"),
         ((obs, actions), jax.random.split(key, 2), "key"),
+        ((np.full_like(obs, 1e300, dtype=np.float64), actions), key, "float32 range"),
     ]
     for batch, k, msg in bad:
         with pytest.raises(ValueError, match=msg):
             soft_step(state, batch, k)
     with pytest.raises(ValueError, match="state"):
         soft_step({"params": state.params}, (obs, actions), key)
+    import dataclasses
+    for step in (-5.5, np.int64(2**40), True):
+        with pytest.raises(ValueError, match="^state.step must be an integer scalar"):
+            soft_step(dataclasses.replace(state, step=step), (obs, actions), key)
     with pytest.raises(ValueError, match="params"):
         soft_step.loss({"x": jnp.zeros(2)}, (obs, actions), key)
     with pytest.raises(ValueError, match="batch_size"):

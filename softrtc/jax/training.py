@@ -273,7 +273,11 @@ def _float_batch(name: str, value: Any, shape: tuple, check_finite: bool) -> jax
         raise ValueError(f"{name} must have shape {want}, got {list(arr.shape)}")
     if check_finite and not np.all(np.isfinite(np.asarray(arr))):
         raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
-    return jnp.asarray(arr, jnp.float32)
+    with np.errstate(over="ignore"):
+        out = jnp.asarray(arr, jnp.float32)
+    if check_finite and not np.all(np.isfinite(np.asarray(out))):  # finite in float64, beyond float32
+        raise ValueError(f"{name} must lie within float32 range (|x| < 3.4e38)")
+    return out
 
 
 def _unpack_batch(batch: Any) -> tuple[Any, Any]:
@@ -426,6 +430,12 @@ class TrainStep:
         if not isinstance(state, TrainState):
             raise ValueError(f"state must be a TrainState (from init_state), got {type(state).__name__}")
         self._check_params("state.params", state.params)
+        step = state.step
+        if not isinstance(step, jax.core.Tracer):
+            s = np.asarray(step)
+            if s.ndim != 0 or not np.issubdtype(s.dtype, np.integer) or s.dtype == np.bool_ \
+                    or not 0 <= int(s) < 2**31:
+                raise ValueError(f"state.step must be an integer scalar in [0, 2147483647], got {step!r}")
 
     def check_batch(self, batch: Any) -> tuple[jax.Array, jax.Array]:
         """Validated ``(obs [B, O], actions [B, H, A])`` as float32 ([T-10], [N-7])."""
