@@ -449,4 +449,10 @@ def test_checkpoint_argument_validation(tmp_path):
         C.save_checkpoint(tmp_path / "no" / "a.npz", pol, {})
     with pytest.raises(ValueError, match="path"):
         C.load_checkpoint(tmp_path / "absent.npz")
+    with pytest.raises(ValueError, match="got the directory"):
+        C.save_checkpoint(tmp_path, pol, {})
+    for header, arrays, word in (({1: 2}, {}, "str keys"), ({"a": {1, 2}}, {}, "JSON values"),
+                                 ({}, {1: np.zeros(2)}, "str name")):
+        with pytest.raises(ValueError, match=word):
+            C.checkpoint_checksum(header, arrays)
     assert not (tmp_path / "a.npz").exists()

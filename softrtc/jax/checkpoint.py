@@ -81,11 +81,17 @@ def checkpoint_checksum(header: Mapping, arrays: Mapping[str, np.ndarray]) -> st
     """
     if not isinstance(header, Mapping):
         raise ValueError(f"header must be a mapping, got {type(header).__name__}")
-    if not isinstance(arrays, Mapping):
-        raise ValueError(f"arrays must be a mapping of name -> array, got {type(arrays).__name__}")
+    if not isinstance(arrays, Mapping) or not all(isinstance(k, str) for k in arrays):
+        raise ValueError(f"arrays must be a mapping of str name -> array, got {type(arrays).__name__}")
+    if not all(isinstance(k, str) for k in header):
+        raise ValueError("header must be a mapping with str keys")
     h = hashlib.sha256()
     body = {k: v for k, v in header.items() if k != "checksum"}
-    h.update(json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False).encode())
+    try:
+        text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"header must hold JSON values only (no NaN, sets or objects): {exc}") from None
+    h.update(text.encode())
     for name in sorted(arrays):
         a = np.ascontiguousarray(arrays[name])
         # Length-prefixed fields: no two different (name, dtype, shape) lists hash the same byte stream.
@@ -115,6 +121,8 @@ def save_checkpoint(path: str | os.PathLike, policy: FlowPolicy, metadata: Mappi
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise ValueError(f"path must be in an existing directory, got {directory!r}")
+    if os.path.isdir(path):
+        raise ValueError(f"path must be a file path, got the directory {os.fspath(path)!r}")
     if not isinstance(policy, FlowPolicy):
         raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
     metadata = {} if metadata is None else metadata
