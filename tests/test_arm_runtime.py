@@ -149,3 +149,16 @@ def test_predict_delay_rule_and_validation():
         run_realtime_episode(RampPolicy(), 0, 0)
     with pytest.raises(ValueError, match="periods_s"):
         jitter_summary([])
+
+
+def test_runtime_helpers_validate_inputs():
+    """N-7, R-3: predict_delay and jitter_summary reject what they cannot mean."""
+    from softrtc.arm.runtime import jitter_summary
+
+    for bad in (5, [True], [-1], [1.5]):
+        with pytest.raises(ValueError, match="^recent_delays"):
+            predict_delay(bad, 3)
+    for bad in ([-1.0, 0.02], [True, False], [], [float("nan")]):
+        with pytest.raises(ValueError, match="^periods_s"):
+            jitter_summary(bad)
+    assert predict_delay([2, 3], 4) == 3 and jitter_summary([0.02, 0.02])["p50_ms"] == pytest.approx(20.0)

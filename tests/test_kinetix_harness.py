@@ -131,6 +131,10 @@ def test_summarize_pools_levels_and_delays():
     assert "| Base Naive |" in table
     with pytest.raises(ValueError, match="rows"):
         H.summarize([])
+    with pytest.raises(ValueError, match=r"^rows\[0\]\['delay'\] must be an integer"):
+        H.summarize([dict(rows[0], delay=-7)])
+    with pytest.raises(ValueError, match=r"^rows\[1\] must be a mapping with keys"):
+        H.summarize([rows[0], {"method": "naive"}])
 
 
 def test_config_and_input_validation():

@@ -67,7 +67,10 @@ def predict_delay(recent_delays, max_delay: int) -> int:
     """
     if isinstance(max_delay, bool) or not isinstance(max_delay, (int, np.integer)) or max_delay < 1:
         raise ValueError(f"max_delay must be an integer >= 1, got {max_delay!r}")
-    r = list(recent_delays)
+    try:
+        r = list(recent_delays)
+    except TypeError:
+        raise ValueError(f"recent_delays must be a non-empty sequence of integers >= 0, got {recent_delays!r}") from None
     if not r or any(isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < 0 for x in r):
         raise ValueError(f"recent_delays must be a non-empty sequence of integers >= 0, got {r!r}")
     return int(min(max(max(r), 1), max_delay))
@@ -75,9 +78,11 @@ def predict_delay(recent_delays, max_delay: int) -> int:
 
 def jitter_summary(periods_s) -> dict:
     """p50, p99 and max of control-loop periods in ms, and the share of periods over 1.5 dt is left to callers."""
+    if np.asarray(periods_s).dtype.kind not in "iuf":
+        raise ValueError(f"periods_s must be real numbers, got dtype {np.asarray(periods_s).dtype}")
     p = np.asarray(periods_s, np.float64)
-    if p.ndim != 1 or p.size < 1 or not np.all(np.isfinite(p)):
-        raise ValueError("periods_s must be a non-empty 1-D array of finite periods")
+    if p.ndim != 1 or p.size < 1 or not np.all(np.isfinite(p)) or np.any(p < 0):
+        raise ValueError("periods_s must be a non-empty 1-D array of finite periods >= 0 (seconds)")
     return {"p50_ms": float(np.percentile(p, 50) * 1e3), "p99_ms": float(np.percentile(p, 99) * 1e3),
             "max_ms": float(p.max() * 1e3), "mean_ms": float(p.mean() * 1e3), "n": int(p.size)}
 

@@ -611,6 +611,12 @@ def summarize(rows: Iterable[Mapping], *, bootstrap_resamples: int = 10000, boot
     rows = list(rows)
     if not rows:
         raise ValueError("rows must hold at least one episode row")
+    need = ("method", "level", "delay", *METRICS)
+    for i, r in enumerate(rows):
+        if not isinstance(r, Mapping) or any(k not in r for k in need):
+            raise ValueError(f"rows[{i}] must be a mapping with keys {list(need)} (an episode row of evaluate), "
+                             f"got {r if not isinstance(r, Mapping) else sorted(r)}")
+        _check_int(f"rows[{i}]['delay']", r["delay"], 0, 4096)
     _check_int("bootstrap_resamples", bootstrap_resamples, 1, 10**7)
     _check_int("bootstrap_seed", bootstrap_seed, 0, 2**32 - 1)
     methods = list(dict.fromkeys(r["method"] for r in rows))
