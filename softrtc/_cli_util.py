@@ -78,18 +78,23 @@ def _first_existing(path: Path) -> Path:
     return p
 
 
+def _writable(text: str, folder: Path) -> str:
+    """``text`` when ``folder``, or its nearest existing ancestor (the command creates the rest), is writable."""
+    base = _first_existing(folder)
+    if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} is not a writable directory")
+    return text
+
+
 def output_file() -> Callable[[str], str]:
     """A file the command will write: not empty, not a directory, inside a writable (or creatable) directory."""
     def parse(text: str) -> str:
         if not text:
-            raise argparse.ArgumentTypeError(f"must be a file path, got an empty string")
+            raise argparse.ArgumentTypeError("must be a file path, got an empty string")
         path = Path(text)
         if path.is_dir():
             raise argparse.ArgumentTypeError(f"{text} is a directory; expected a file path")
-        base = _first_existing(path.parent)
-        if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
-            raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} is not a writable directory")
-        return text
+        return _writable(text, path.parent)
     return parse
 
 
@@ -97,14 +102,11 @@ def output_dir() -> Callable[[str], str]:
     """A directory the command will write into: not empty, not an existing file, creatable or writable."""
     def parse(text: str) -> str:
         if not text:
-            raise argparse.ArgumentTypeError(f"must be a directory path, got an empty string")
+            raise argparse.ArgumentTypeError("must be a directory path, got an empty string")
         path = Path(text)
         if path.exists() and not path.is_dir():
             raise argparse.ArgumentTypeError(f"{text} is a file; expected a directory")
-        base = _first_existing(path)
-        if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
-            raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} is not a writable directory")
-        return text
+        return _writable(text, path)
     return parse
 
 
@@ -112,7 +114,7 @@ def input_dir() -> Callable[[str], str]:
     """An existing directory to read from."""
     def parse(text: str) -> str:
         if not text:
-            raise argparse.ArgumentTypeError(f"must be a directory path, got an empty string")
+            raise argparse.ArgumentTypeError("must be a directory path, got an empty string")
         if not Path(text).is_dir():
             what = "is not a directory" if Path(text).exists() else "does not exist"
             raise argparse.ArgumentTypeError(f"{text} {what}")
