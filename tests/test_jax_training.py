@@ -376,6 +376,22 @@ def test_checkpoint_roundtrip(tmp_path):
     assert header["policy"] == {"obs_dim": OBS, "action_dim": ACT, "config": {
         "channel_dim": 16, "channel_hidden_dim": 16, "token_hidden_dim": 4, "num_layers": 1, "action_chunk_size": 6}}
     assert header["checksum"] == C.checkpoint_checksum(header, members)
+    # The byte stream of [T-11], written out independently of checkpoint_checksum.
+    import hashlib
+    import json as _json
+    h = hashlib.sha256(_json.dumps({k: v for k, v in header.items() if k != "checksum"}, sort_keys=True,
+                                   separators=(",", ":")).encode())
+    for name in sorted(members):
+        a = np.ascontiguousarray(members[name])
+        for part in (name.encode(), a.dtype.str.encode(), str(list(a.shape)).encode()):
+            h.update(len(part).to_bytes(8, "little") + part)
+        h.update(a.tobytes())
+    assert header["checksum"] == "sha256:" + h.hexdigest()
+    import os
+    import stat
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(os.stat(path).st_mode) == 0o666 & ~umask  # not owner-only
     assert "params/mlp_stack/0/adaln_1/kernel" in members
     restored, got_meta = C.load_checkpoint(path)
     assert got_meta == meta and TrainConfig.from_dict(got_meta["train_config"]) == SOFT
@@ -451,6 +467,8 @@ def test_checkpoint_argument_validation(tmp_path):
         C.load_checkpoint(tmp_path / "absent.npz")
     with pytest.raises(ValueError, match="got the directory"):
         C.save_checkpoint(tmp_path, pol, {})
+    with pytest.raises(ValueError, match="string keys at every depth"):
+        C.save_checkpoint(tmp_path / "a.npz", pol, {"a": {1: 2}})
     for header, arrays, word in (({1: 2}, {}, "str keys"), ({"a": {1, 2}}, {}, "JSON values"),
                                  ({}, {1: np.zeros(2)}, "str name")):
         with pytest.raises(ValueError, match=word):

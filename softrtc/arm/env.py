@@ -95,6 +95,9 @@ class ArmConfig:
     box_wall_thickness: float = 0.01
     home_ee: tuple[float, float] = (0.0, 0.25)
 
+    def __post_init__(self):
+        _validate_config(self)  # every field at construction, like the other config classes ([A-12])
+
     @property
     def dt(self) -> float:
         """Control period in seconds ([A-4])."""

@@ -31,6 +31,7 @@ from softrtc.jax import sampler as jsampler
 from softrtc.jax.checkpoint import load_checkpoint, save_checkpoint
 from softrtc.jax.policy import FlowPolicy, PolicyConfig
 from softrtc.jax.training import TrainConfig, train
+from softrtc.jax import weights as jweights
 from softrtc.jax.weights import SoftWindow
 from softrtc.reference.weights import SoftWindow as RefSoftWindow
 
@@ -373,7 +374,15 @@ def load_arm_checkpoint(path, sampler_method: str | None = None) -> "ArmPolicy":
         raise ValueError(f"path {os.fspath(path)!r}: invalid arm metadata ({exc})") from exc
     if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
         raise ValueError(f"path {os.fspath(path)!r}: stored policy does not match its arm config")
-    pol = ArmPolicy(model, norm, config, sampler_method or method, trained_as=method, meta=arm.get("meta", {}))
+    window = None
+    if (sampler_method or method) == "train_soft" and isinstance(arm.get("train_config"), dict):
+        # The training window is the inference window ([W-7]): run the sampler with the one stored.
+        try:
+            window = jweights.from_reference(TrainConfig.from_dict(arm["train_config"]).window)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"path {os.fspath(path)!r}: invalid train_config in arm metadata ({exc})") from exc
+    pol = ArmPolicy(model, norm, config, sampler_method or method, trained_as=method, meta=arm.get("meta", {}),
+                    window=window)
     pol.train_config = arm.get("train_config")
     return pol
 

@@ -102,6 +102,15 @@ def checkpoint_checksum(header: Mapping, arrays: Mapping[str, np.ndarray]) -> st
     return "sha256:" + h.hexdigest()
 
 
+def _str_keys(value) -> bool:
+    """True when every mapping inside ``value`` has str keys (JSON would turn 1 into "1" silently)."""
+    if isinstance(value, Mapping):
+        return all(isinstance(k, str) and _str_keys(x) for k, x in value.items())
+    if isinstance(value, (list, tuple)):
+        return all(_str_keys(x) for x in value)
+    return True
+
+
 def _policy_spec(policy: FlowPolicy) -> dict:
     return {"obs_dim": policy.obs_dim, "action_dim": policy.action_dim,
             "config": dataclasses.asdict(policy.config)}
@@ -126,8 +135,8 @@ def save_checkpoint(path: str | os.PathLike, policy: FlowPolicy, metadata: Mappi
     if not isinstance(policy, FlowPolicy):
         raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
     metadata = {} if metadata is None else metadata
-    if not isinstance(metadata, Mapping) or not all(isinstance(k, str) for k in metadata):
-        raise ValueError("metadata must be a mapping with string keys")
+    if not isinstance(metadata, Mapping) or not _str_keys(metadata):
+        raise ValueError("metadata must be a mapping with string keys at every depth")
     try:
         metadata = json.loads(json.dumps(dict(metadata), allow_nan=False))
     except (TypeError, ValueError) as exc:
@@ -149,6 +158,10 @@ def save_checkpoint(path: str | os.PathLike, policy: FlowPolicy, metadata: Mappi
     try:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **members)  # a file object keeps numpy from appending ".npz" to the name
+        # mkstemp creates the file owner-only; give it the mode of any new file under the umask.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
