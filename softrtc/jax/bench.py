@@ -420,13 +420,18 @@ def _stats(ts: list, base: list | None) -> dict:
     return out
 
 
-def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[str], None] | None = None) -> dict:
-    """Run the whole benchmark ([B-1]..[B-9]); returns the JSON-able result of [B-10]."""
+def _reporter(config, progress) -> Callable[[str], None]:
+    """Checks the arguments every benchmark run takes ([N-7]); returns the progress callback (a no-op for None)."""
     if not isinstance(config, BenchConfig):
         raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
     if progress is not None and not callable(progress):
         raise ValueError("progress must be callable with one string argument, or None")
-    say = progress or (lambda msg: None)
+    return progress or (lambda msg: None)
+
+
+def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[str], None] | None = None) -> dict:
+    """Run the whole benchmark ([B-1]..[B-9]); returns the JSON-able result of [B-10]."""
+    say = _reporter(config, progress)
     t_start = time.perf_counter()
     policy = make_policy(config)
     graphdef, treedef, state = _params(policy)
@@ -623,13 +628,9 @@ def run_vjp_ablation(config: BenchConfig = BenchConfig(), *,
     ``delay``, ``seed``, ``num_steps``, ``execute_horizon`` and ``arch`` of
     ``config``; the path is always the fast one.
     """
-    if not isinstance(config, BenchConfig):
-        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
-    if progress is not None and not callable(progress):
-        raise ValueError("progress must be callable with one string argument, or None")
     from .policy import autodiff_vjps
 
-    say = progress or (lambda msg: None)
+    say = _reporter(config, progress)
     t_start = time.perf_counter()
     config = dataclasses.replace(config, path="fast")
     policy = make_policy(config)

@@ -41,6 +41,29 @@ def _delay(H, s, d, B=None):
     return v.int_array("d", d, shape=(B,), lo=0, hi=hi)
 
 
+def _check_request(method, noise, prior, s, d, window, *, window_used: bool):
+    """Checks shared by the generate_chunk functions; returns (H, s, d checked against [X-1] or None).
+
+    The delay is checked for every method, naive included (it ignores d, but a
+    delay the executor cannot run is an error, [X-1]); so is the prior naive
+    ignores (the other samplers check theirs). ``window`` is checked here
+    unless the method's weights will check it (``window_used``).
+    """
+    v.check_choice("method", method, METHODS)
+    H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
+    H = v.check_int("noise.shape[1] (H)", H, 1)
+    s = v.check_int("s", s, 1, H)
+    _check_first(prior, d)
+    dd = None
+    if prior is not None:
+        dd = _delay(H, s, d, jnp.shape(noise)[0])
+        if method == "naive":
+            v.array("prior", prior, shape=jnp.shape(noise))
+    if window is not None and not window_used:
+        check_window(H, window)
+    return H, s, dd
+
+
 def _one(method, H, s, d, window):
     if method == "naive":
         return jnp.zeros((H,), jnp.float32)
@@ -95,16 +118,7 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     prior [B, H, A], ``velocity_fn(obs, x, t [B, H])``). ``prior=None`` is the
     first chunk: naive sampler, d must be 0 ([X-2]).
     """
-    v.check_choice("method", method, METHODS)
-    H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
-    H = v.check_int("noise.shape[1] (H)", H, 1)
-    s = v.check_int("s", s, 1, H)
-    _check_first(prior, d)
-    if prior is not None:
-        _delay(H, s, d, jnp.shape(noise)[0])  # [X-1] also for naive, which ignores d
-        v.array("prior", prior, shape=jnp.shape(noise))
-    if window is not None:
-        check_window(H, window)
+    H, s, _ = _check_request(method, noise, prior, s, d, window, window_used=method == "train_soft")
     if prior is None or method == "naive":
         return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
     w = method_weights(method, H, s, d, window)
@@ -201,28 +215,19 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     the weights of [G-1] can be nonzero ([G-7], needs
     ``model.apply_conditioned_split``); chunks agree within float32 rounding.
     """
-    v.check_choice("method", method, METHODS)
-    H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
-    H = v.check_int("noise.shape[1] (H)", H, 1)
-    s = v.check_int("s", s, 1, H)
-    _check_first(prior, d)
+    H, s, dd = _check_request(method, noise, prior, s, d, window,
+                              window_used=method == "train_soft" and tables is None)
     if not isinstance(restrict_guidance, bool):
         raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
     if tables is not None:
         _check_tables(method, tables, H, s, num_steps)
     naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]
-    if prior is not None:
-        _delay(H, s, d, jnp.shape(noise)[0])  # [X-1] also for naive, which ignores d
-        v.array("prior", prior, shape=jnp.shape(noise))
-    if window is not None:
-        check_window(H, window)
     if prior is None or method == "naive":
         return naive_sample_conditioned(model, obs, noise, num_steps, cond=naive_cond, unroll=unroll)
     if tables is None:
         w = method_weights(method, H, s, d, window)
         cond = None
     else:
-        dd = _delay(H, s, d)
         w = tables["weights"][dd]
         cond = select_conditioning(tables["cond"], dd) if method.startswith("train_") else naive_cond
     if method.startswith("inference_"):
