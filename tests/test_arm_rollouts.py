@@ -162,6 +162,16 @@ def test_checkpoint_roundtrip_and_shipped_checkpoints(tmp_path):
     np.testing.assert_array_equal(q.generate(obs, c0, 3, jax.random.key(4)), p.generate(obs, c0, 3, jax.random.key(4)))
     with pytest.raises(ValueError, match="path"):
         load_arm_checkpoint(tmp_path / "missing.npz")
+    # A train_soft checkpoint samples with the window it was trained with ([W-7]), not the default one.
+    import dataclasses
+
+    from softrtc.reference.endpoints import offset
+    from softrtc.reference.weights import SoftWindow as RefSoftWindow
+    soft_tc = dataclasses.replace(arm_train_config("train_soft", CFG, 10), window=RefSoftWindow(offset(1, 8)))
+    soft = load_arm_checkpoint(save_arm_checkpoint(tmp_path / "s.npz", p.model, p.normalizer, CFG, "train_soft",
+                                                   None, soft_tc))
+    assert soft.window.rule.kind == "offset" and int(soft.window.rule.length) == 1
+    assert load_arm_checkpoint(tmp_path / "s.npz", "naive").method == "naive"
     with pytest.raises(ValueError, match="method"):
         save_arm_checkpoint(tmp_path / "q.npz", p.model, p.normalizer, CFG, "inference_soft")
     folder = default_checkpoint_dir()

@@ -46,7 +46,7 @@ def test_argument_types_name_the_range():
 
 
 def test_output_and_input_paths_are_checked_up_front(tmp_path):
-    """N-7: an output that cannot be written is an error before the work, not after it."""
+    """N-7, N-11: an output that cannot be written is an error before the work, not after it."""
     import argparse
 
     f = tmp_path / "afile"
@@ -85,7 +85,7 @@ def test_output_and_input_paths_are_checked_up_front(tmp_path):
     (["arm", "expert", "--seed0", "99999999999999999999"], "--seed0"),
 ])
 def test_bad_options_exit_2_with_one_line(argv, word, capsys):
-    """N-7, CF-19, B-10: each bad option exits with status 2 and names itself; no traceback."""
+    """N-7, N-11, CF-19, B-10: each bad option exits with status 2 and names itself; no traceback."""
     assert status(argv) == 2
     line = last_error_line(capsys)
     assert line.startswith("softrtc ") and word in line, line
@@ -103,14 +103,14 @@ def test_malformed_vector_files_are_one_line_errors(tmp_path, capsys):
 
 
 def test_groups_without_a_subcommand_print_help_and_exit_2(capsys):
-    """N-7: `softrtc arm`, `kinetix`, `bench`, `conformance` alone are usage errors (status 2) that show the help."""
+    """N-11: `softrtc arm`, `kinetix`, `bench`, `conformance` alone are usage errors (status 2) that show the help."""
     for group in ("arm", "kinetix", "bench", "conformance"):
         assert status([group]) == 2
         assert "usage: softrtc " + group in capsys.readouterr().out
 
 
 def test_library_errors_become_one_line(monkeypatch, capsys):
-    """N-7: a ValueError or OSError from a command ends as `softrtc CMD: error: ...`, status 2, no traceback;
+    """N-11: a ValueError or OSError from a command ends as `softrtc CMD: error: ...`, status 2, no traceback;
     SOFTRTC_TRACEBACK=1 shows the traceback."""
     import softrtc.reference.cli as rcli
 

@@ -154,7 +154,7 @@ def test_reference_imports_in_numpy_only_venv(tmp_path):
 
 
 def test_cli_stops_quietly_when_its_reader_goes_away():
-    """`softrtc examples | head -1` must not end in a traceback: a closed stdout exits with 128 + SIGPIPE.
+    """N-11: `softrtc examples | head -1` must not end in a traceback: a closed stdout exits with 128 + SIGPIPE.
 
     The read end is closed before the child has imported anything, so its first write meets a closed pipe.
     """
