@@ -695,3 +695,23 @@ def test_twin_rejects_what_jax_would_clamp_wrap_or_broadcast():
     assert np.array_equal(jax.jit(lambda k: JD.sample_delays(k, probs, 0, 3))(key), JD.sample_delays(key, probs, 0, 3))
     assert JM.generate_chunk_conditioned("train_soft", pol, obs, noise, noise, 4, 2, 3, tables=good).shape == (2, 8, 2)
     assert JC.corrupt(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros(4), 0.5)[0].shape == (4, 2)
+
+
+def test_method_request_checked_whole():
+    """S-8: as the reference, the default window is resolved by train_soft only (other methods
+    run for H < 5), and a window given to any method, on the first chunk too, must fit H."""
+    small = R.SoftWindow(R.delay_scaled(2.0, 3))
+    for method in R.methods.METHODS:
+        win = small if method == "train_soft" else None
+        np.testing.assert_allclose(JM.method_weights(method, 4, 2, 1, win),
+                                   R.methods.method_weights(method, 4, 2, 1, win), **TOL)
+        with pytest.raises(ValueError, match="h_max or h"):
+            JM.method_weights(method, 4, 2, 1, JW.SoftWindow())
+    with pytest.raises(ValueError, match="h_max or h"):
+        JM.method_weights("train_soft", 4, 2, 1)
+    obs, noise, prior = _inputs(2)
+    for method in R.methods.METHODS:
+        with pytest.raises(ValueError, match="window"):
+            JM.generate_chunk(method, JFIELD, obs, noise, None, 4, 0, 2, window="junk")
+        with pytest.raises(ValueError, match="window"):
+            JM.generate_chunk_conditioned(method, JFIELD, obs, noise, None, 4, 0, 2, window="junk")

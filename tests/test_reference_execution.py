@@ -169,3 +169,27 @@ def test_naming_and_batch_conventions():
     p, a, n = rng.standard_normal((3, 2, 4, 1))
     ws = np.zeros((2, 4))
     assert batch_loss(p, a, n, ws) == np.mean([flow_matching_loss(p[i], a[i], n[i], ws[i]) for i in range(2)])
+
+
+def test_undefined_smoothness_metrics_are_left_out():
+    """M-8: D_k with N <= k and a jump with no switch raise in the reference, are NaN in traced
+    JAX, and are left out of the means of the arm study and the Kinetix summary (not counted as 0)."""
+    import jax
+
+    from softrtc.arm.study import _mean
+    from softrtc.jax import metrics as JMt
+    from softrtc.kinetix.harness import _nanmean
+
+    a = np.arange(6.0).reshape(3, 2)
+    with pytest.raises(ValueError, match="chunk switch"):
+        M.boundary_jump(a, np.zeros(3, int))
+    with pytest.raises(ValueError):
+        M.difference_norm(a[:2], 2)
+    with pytest.raises(ValueError, match="chunk switch"):
+        JMt.boundary_jump(a, np.zeros(3, int))
+    traced = jax.jit(JMt.boundary_jump)(a, np.zeros(3, np.int32))
+    assert np.isnan(traced)
+    assert jax.jit(JMt.boundary_jump)(a, np.array([0, 0, 1], np.int32)) == pytest.approx(M.boundary_jump(
+        a, np.array([0, 0, 1])))
+    assert _mean([1.0, float("nan"), 3.0]) == 2.0 and np.isnan(_mean([float("nan")]))
+    assert _nanmean([1.0, float("nan"), 3.0]) == 2.0 and np.isnan(_nanmean([]))

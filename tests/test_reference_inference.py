@@ -160,3 +160,26 @@ def test_guided_with_zero_weights_equals_naive(seed, T):
     """G-6: all-zero guidance weights give exactly the naive sampler."""
     f, obs, noise, prior = make(seed)
     assert np.array_equal(G.guided_sample(f, obs, noise, prior, np.zeros(8), T), S.naive_sample(f, obs, noise, T))
+
+
+def test_method_request_checked_whole():
+    """S-8: the default window is resolved by train_soft only, so every other method runs
+    for H < 5; arguments a method ignores (a window, naive's prior) are checked all the same."""
+    f, obs, noise, prior = make(3, H=4)
+    for method in ("naive", "inference_hard", "inference_soft", "train_hard"):
+        assert Mth.method_weights(method, 4, 2, 1).shape == (4,)
+        assert Mth.generate_chunk(method, f, obs, noise, prior, 2, 1, 3).shape == (4, 2)
+    np.testing.assert_array_equal(Mth.method_weights("train_hard", 4, 2, 1), [1, 0, 0, 0])
+    with pytest.raises(ValueError, match="h_max or h"):
+        Mth.method_weights("train_soft", 4, 2, 1)
+    small = W.SoftWindow(W.delay_scaled(2.0, 3))
+    assert Mth.method_weights("train_soft", 4, 2, 1, small).tolist() == [1.0, 0.5, 0.0, 0.0]
+    for method in Mth.METHODS:
+        with pytest.raises(ValueError, match="h_max or h"):  # a given window must fit H, used or not
+            Mth.method_weights(method, 4, 2, 1, W.SoftWindow())
+        with pytest.raises(ValueError, match="window must be a SoftWindow"):
+            Mth.generate_chunk(method, f, obs, noise, None, 2, 0, 3, window="junk")
+    with pytest.raises(ValueError, match="prior must have shape"):
+        Mth.generate_chunk("naive", f, obs, noise, prior[:3], 2, 1, 3)
+    with pytest.raises(ValueError, match="prior must be a numeric array|prior must be a real"):
+        Mth.generate_chunk("naive", f, obs, noise, "foo", 2, 1, 3)

@@ -210,3 +210,50 @@ def test_naive_method_rejects_delays_the_executor_cannot_run():
         with pytest.raises(ValueError, match=r"^s must be an integer in \[1, 8\], got 9"):
             call(9, 0)
     assert rmethods.generate_chunk("naive", field, obs[0], noise[0], noise[0], 4, 4, 2).shape == (8, 2)
+
+
+def test_arrays_of_non_real_dtype_rejected():
+    """N-7: booleans, strings and complex numbers are not converted to floats."""
+    a = np.ones((3, 2))
+    for bad in (np.array([True, False, False]), np.array(["1", "0", "0.5"]), np.array([1, 0, 0.5j])):
+        with pytest.raises(ValueError, match="weights must be a real numeric array"):
+            corruption.corrupt(a, a, bad, 0.5)
+    with pytest.raises(ValueError, match="actions must be a real numeric array"):
+        corruption.corrupt(a.astype(bool), a, np.zeros(3), 0.5)
+    # Integer arrays are real and accepted.
+    np.testing.assert_array_equal(corruption.corrupt(a.astype(int), a, np.ones(3), 0.5)[0], a)
+
+
+def test_velocity_field_output_is_checked():
+    """N-7: a field returning the wrong shape or NaN is an error in every reference sampler,
+    and a wrong shape is an error in the JAX twin (not broadcast)."""
+    rng = np.random.default_rng(0)
+    obs, x, y = rng.standard_normal(3), rng.standard_normal((4, 2)), rng.standard_normal((4, 2))
+    w = np.array([1.0, 0.5, 0.0, 0.0])
+    bad_shape = lambda o, x, t: np.zeros(x.shape[1])  # noqa: E731
+    bad_value = lambda o, x, t: np.full(x.shape, np.nan)  # noqa: E731
+    for f, match in ((bad_shape, "state's shape"), (bad_value, "non-finite")):
+        with pytest.raises(ValueError, match=match):
+            sampler.naive_sample(f, obs, x, 2)
+        with pytest.raises(ValueError, match=match):
+            sampler.rtc_sample(f, obs, x, y, w, 2)
+
+    class BadVJP:
+        def __call__(self, o, x, t):
+            return np.zeros_like(x)
+
+        def vjp(self, o, x, t, ct):
+            return np.zeros(1)
+
+    with pytest.raises(ValueError, match="field.vjp must return"):
+        guidance.guided_sample(BadVJP(), obs, x, y, w, 2)
+
+    from softrtc.jax import guidance as JG
+    from softrtc.jax import sampler as JS
+
+    bo, bx, by = obs[None], x[None], y[None]
+    jbad = lambda o, x, t: x[..., :1]  # noqa: E731
+    for call in (lambda: JS.naive_sample(jbad, bo, bx, 2), lambda: JS.rtc_sample(jbad, bo, bx, by, w, 2),
+                 lambda: JG.guided_sample(jbad, bo, bx, by, w, 2)):
+        with pytest.raises(ValueError, match="velocity_fn must return"):
+            call()

@@ -20,7 +20,7 @@ from softrtc.reference import guidance as _ref
 
 from . import _validate as v
 from .sampler import (_at, _runtime, _check_fn, _check_model, _loop, check_batch, check_leading, euler_times,
-                      naive_conditioning)
+                      field_output, naive_conditioning)
 from .weights import PARAMETRIZATIONS, SCHEDULES, _prefix_jit
 
 MAX_GUIDANCE = _ref.MAX_GUIDANCE
@@ -106,7 +106,7 @@ def guided_sample(velocity_fn, obs, noise, prior, weights, num_steps: int,
     times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
 
     def apply_fn(k, x):
-        return velocity_fn(obs, x, w0 + (1.0 - w0) * times[k])
+        return field_output("velocity_fn", velocity_fn(obs, x, w0 + (1.0 - w0) * times[k]), x)
 
     return _guided(apply_fn, obs, x, y, w, T, beta, unroll)
 

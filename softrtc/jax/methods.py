@@ -41,13 +41,13 @@ def _delay(H, s, d, B=None):
     return v.int_array("d", d, shape=(B,), lo=0, hi=hi)
 
 
-def _check_request(method, noise, prior, s, d, window, *, window_used: bool):
+def _check_request(method, noise, prior, s, d, window):
     """Checks shared by the generate_chunk functions; returns (H, s, d checked against [X-1] or None).
 
-    The delay is checked for every method, naive included (it ignores d, but a
-    delay the executor cannot run is an error, [X-1]); so is the prior naive
-    ignores (the other samplers check theirs). ``window`` is checked here
-    unless the method's weights will check it (``window_used``).
+    Arguments a method ignores are checked all the same ([S-8]): the delay for
+    every method, naive included (a delay the executor cannot run is an error,
+    [X-1]); the prior naive ignores (the other samplers check theirs); a given
+    window for every method and for the first chunk.
     """
     v.check_choice("method", method, METHODS)
     H = jnp.shape(noise)[1] if jnp.ndim(noise) == 3 else 0
@@ -59,7 +59,7 @@ def _check_request(method, noise, prior, s, d, window, *, window_used: bool):
         dd = _delay(H, s, d, jnp.shape(noise)[0])
         if method == "naive":
             v.array("prior", prior, shape=jnp.shape(noise))
-    if window is not None and not window_used:
+    if window is not None:
         check_window(H, window)
     return H, s, dd
 
@@ -77,13 +77,16 @@ def _one(method, H, s, d, window):
 def method_weights(method: str, H: int, s: int, d, window=None) -> jax.Array:
     """Token weights of ``method`` for delay d ([S-6], [G-1], [W-7], [W-8]).
 
-    ``d`` scalar gives [H]; ``d [B]`` gives [B, H]. ``window`` (train_soft
-    only) is a JAX or reference :class:`SoftWindow`, default the paper's main setting.
+    ``d`` scalar gives [H]; ``d [B]`` gives [B, H]. ``window`` (used by
+    train_soft only) is a JAX or reference :class:`SoftWindow`, default
+    ``SoftWindow()``; a given window is checked for every method, the default
+    is resolved for train_soft only ([S-8]).
     """
     v.check_choice("method", method, METHODS)
     H = v.check_int("H", H, 1)
     s = v.check_int("s", s, 1, H)
-    window = check_window(H, SoftWindow() if window is None else window)
+    if window is not None or method == "train_soft":
+        window = check_window(H, SoftWindow() if window is None else window)
     d = _delay(H, s, d)
     if d.ndim == 0:
         return _one(method, H, s, d, window)
@@ -118,7 +121,7 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     prior [B, H, A], ``velocity_fn(obs, x, t [B, H])``). ``prior=None`` is the
     first chunk: naive sampler, d must be 0 ([X-2]).
     """
-    H, s, _ = _check_request(method, noise, prior, s, d, window, window_used=method == "train_soft")
+    H, s, _ = _check_request(method, noise, prior, s, d, window)
     if prior is None or method == "naive":
         return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
     w = method_weights(method, H, s, d, window)
@@ -215,8 +218,7 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     the weights of [G-1] can be nonzero ([G-7], needs
     ``model.apply_conditioned_split``); chunks agree within float32 rounding.
     """
-    H, s, dd = _check_request(method, noise, prior, s, d, window,
-                              window_used=method == "train_soft" and tables is None)
+    H, s, dd = _check_request(method, noise, prior, s, d, window)
     if not isinstance(restrict_guidance, bool):
         raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
     if tables is not None:

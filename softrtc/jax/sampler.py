@@ -133,6 +133,19 @@ def check_leading(name: str, tree, lead: tuple) -> None:
                              f"got a leaf of shape {list(jnp.shape(leaf))}")
 
 
+def field_output(name: str, value, x) -> jax.Array:
+    """A velocity returned by ``name`` must have the state's shape ([N-7]).
+
+    Checked at trace time (shapes are static, so it costs nothing per call);
+    XLA would otherwise broadcast a [A] or [B, H, 1] velocity silently. Values
+    cannot be checked inside a compiled call; the reference also rejects NaN.
+    """
+    if tuple(jnp.shape(value)) != tuple(x.shape):
+        raise ValueError(f"{name} must return an array of the state's shape {list(x.shape)}, "
+                         f"got {list(jnp.shape(value))}")
+    return value
+
+
 # ----------------------------------------------------------------------- straightforward path
 
 
@@ -145,7 +158,7 @@ def naive_sample(velocity_fn, obs, noise, num_steps: int, *, unroll: bool = True
     times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
 
     def step(k, x):
-        return x + velocity_fn(obs, x, w0 + (1.0 - w0) * times[k]) / T
+        return x + field_output("velocity_fn", velocity_fn(obs, x, w0 + (1.0 - w0) * times[k]), x) / T
 
     return _loop(step, x, T, unroll)
 
@@ -163,7 +176,7 @@ def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unrol
     def step(k, x):
         xb = wx * y + (1.0 - wx) * x
         tb = wb + (1.0 - wb) * times[k]
-        return xb + velocity_fn(obs, xb, tb) / T
+        return xb + field_output("velocity_fn", velocity_fn(obs, xb, tb), x) / T
 
     return _loop(step, x, T, unroll)
 

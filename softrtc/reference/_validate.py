@@ -53,9 +53,13 @@ def check_array(name: str, value, shape: tuple | None = None, ndim: int | None =
     ``shape`` may contain ``None`` for a free dimension.
     """
     try:
-        arr = np.asarray(value, dtype=np.float64)
+        raw = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
+    # Booleans, strings, complex and object arrays would convert (or drop an imaginary part) silently.
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be a real numeric array (integer or float), got dtype {raw.dtype}")
+    arr = raw.astype(np.float64)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
     if shape is not None:

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from ._validate import check_array, check_choice, check_int, check_real
-from .sampler import euler_times
+from .sampler import euler_times, field_output
 from .weights import check_weights, prefix_weights
 
 MAX_GUIDANCE = 5.0
@@ -63,10 +63,10 @@ def guided_sample(field, obs, noise, prior, weights, num_steps: int,
     trace = []
     for t in euler_times(T):
         tv = np.full(x.shape[0], t)
-        v = np.asarray(field(obs, x, tv), dtype=np.float64)
+        v = field_output("field", field(obs, x, tv), x.shape)
         x1 = x + (1.0 - t) * v
         err = w * (y - x1)
-        g = err + (1.0 - t) * np.asarray(field.vjp(obs, x, tv, err), dtype=np.float64)
+        g = err + (1.0 - t) * field_output("field.vjp", field.vjp(obs, x, tv, err), x.shape)
         lam = guidance_weight(t, beta)
         vg = v + lam * g
         nxt = x + vg / T

@@ -9,26 +9,35 @@
 | train_soft      | rtc_sample       | soft_weights(H, d, window, s)                |
 
 For the first chunk of an episode (no prior, d = 0) every method is the naive
-sampler ([X-2]).
+sampler ([X-2]). Arguments a method ignores are still checked ([S-8]).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_choice, check_int
+from ._validate import check_array, check_choice, check_int
 from .executor import check_delay
 from .guidance import guidance_prefix_weights, guided_sample
 from .sampler import naive_sample, rtc_sample
-from .weights import SoftWindow, hard_weights, soft_weights
+from .weights import SoftWindow, check_window, hard_weights, soft_weights
 
 METHODS = ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft")
 
 
 def method_weights(method: str, H: int, s: int, d: int, window: SoftWindow | None = None) -> np.ndarray:
-    """Token weights a method uses for delay d ([S-6])."""
+    """Token weights a method uses for delay d ([S-6]).
+
+    A given ``window`` is checked for every method; the default window is
+    resolved for train_soft only, so the other methods run for any H ([S-8]).
+
+    >>> method_weights("train_hard", 4, 2, 1).tolist()
+    [1.0, 0.0, 0.0, 0.0]
+    """
     check_choice("method", method, METHODS)
     d = check_delay(H, s, d)
+    if window is not None:
+        check_window(H, window)
     if method == "naive":
         return np.zeros(H)
     if method.startswith("inference_"):
@@ -40,11 +49,19 @@ def method_weights(method: str, H: int, s: int, d: int, window: SoftWindow | Non
 
 def generate_chunk(method: str, field, obs, noise, prior, s: int, d: int, num_steps: int,
                    window: SoftWindow | None = None) -> np.ndarray:
-    """One chunk by ``method`` ([S-6]); ``prior`` None means the first chunk (naive, d must be 0)."""
+    """One chunk by ``method`` ([S-6]); ``prior`` None means the first chunk (naive, d must be 0).
+
+    Arguments the method ignores are checked all the same ([S-8]): the
+    delay ([X-1]), a prior of naive (shape of ``noise``), a window of any method.
+    """
     check_choice("method", method, METHODS)
     H = np.shape(noise)[0] if np.ndim(noise) == 2 else -1
     H = check_int("noise.shape[0]", H, 1)
     s = check_int("s", s, 1, H)
+    if window is not None:
+        check_window(H, window)
+    if prior is not None and method == "naive":
+        check_array("prior", prior, shape=np.shape(noise))
     if prior is None:
         check_int("d", d, 0, 0)
         return naive_sample(field, obs, noise, num_steps)

@@ -37,6 +37,19 @@ def blend_time(t: float, weights) -> np.ndarray:
     return w + (1.0 - w) * check_real("t", t, 0.0, 1.0)
 
 
+def field_output(name: str, value, shape: tuple) -> np.ndarray:
+    """A velocity (or VJP) returned by a field: shape of the state, finite ([N-7])."""
+    try:
+        v = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must return a numeric array, got {type(value).__name__}") from exc
+    if v.shape != tuple(shape):
+        raise ValueError(f"{name} must return an array of the state's shape {list(shape)}, got {list(v.shape)}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} returned non-finite values (NaN or inf)")
+    return v
+
+
 def _check_inputs(field, obs, noise):
     if not callable(field):
         raise ValueError("field must be callable as field(obs, x, t) -> velocity [H, A]")
@@ -56,7 +69,7 @@ def naive_sample(field, obs, noise, num_steps: int, return_trace: bool = False):
     T = check_int("num_steps", num_steps, 1, 1 << 16)
     for t in euler_times(T):
         tv = np.full(x.shape[0], t)
-        v = np.asarray(field(obs, x, tv), dtype=np.float64)
+        v = field_output("field", field(obs, x, tv), x.shape)
         nxt = x + v / T
         if return_trace:
             trace.append({"state": x, "time": tv, "velocity": v, "next_state": nxt})
@@ -78,7 +91,7 @@ def rtc_sample(field, obs, noise, prior, weights, num_steps: int, return_trace: 
     for t in euler_times(T):
         xb = w[:, None] * y + (1.0 - w[:, None]) * x
         tb = w + (1.0 - w) * t
-        v = np.asarray(field(obs, xb, tb), dtype=np.float64)
+        v = field_output("field", field(obs, xb, tb), x.shape)
         nxt = xb + v / T
         if return_trace:
             trace.append({"state": x, "blended_state": xb, "time": tb, "velocity": v, "next_state": nxt})

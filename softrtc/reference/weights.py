@@ -96,10 +96,11 @@ def effective_endpoint(H: int, d: int, e: int, s: int | None = None, overflow: s
     e = check_int("e", e, 0, H)
     check_choice("overflow", overflow, OVERFLOWS)
     e_star = max(e, d)
+    if s is not None:
+        s = check_int("s", s, 1, H)  # checked when given, even where overflow="zeros" leaves it unused
     if overflow == "clip":
         if s is None:
             raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
-        s = check_int("s", s, 1, H)
         e_star = max(d, min(e_star, H - s))
     return e_star
 
@@ -129,6 +130,22 @@ class SoftWindow:
                 "parametrization": self.parametrization, "overflow": self.overflow}
 
 
+def check_window(H: int, window) -> SoftWindow:
+    """A SoftWindow whose endpoint bound (h_max, or h of "fixed") is at most H ([E-1]).
+
+    >>> check_window(4, SoftWindow())
+    Traceback (most recent call last):
+    ...
+    ValueError: window endpoint bound (h_max or h) must be <= H=4, got 5
+    """
+    H = check_int("H", H, 1)
+    if not isinstance(window, SoftWindow):
+        raise ValueError(f"window must be a SoftWindow, got {type(window).__name__}")
+    if window.rule.kind != "hard" and window.rule.bound() > H:
+        raise ValueError(f"window endpoint bound (h_max or h) must be <= H={H}, got {window.rule.bound()}")
+    return window
+
+
 def soft_weights(H: int, d: int, window: SoftWindow, s: int | None = None) -> np.ndarray:
     """Soft RTC token weights for delay d ([W-7]).
 
@@ -137,10 +154,7 @@ def soft_weights(H: int, d: int, window: SoftWindow, s: int | None = None) -> np
     """
     H = check_int("H", H, 1)
     d = check_int("d", d, 0, H)
-    if not isinstance(window, SoftWindow):
-        raise ValueError(f"window must be a SoftWindow, got {type(window).__name__}")
-    if window.rule.kind != "hard" and window.rule.bound() > H:
-        raise ValueError(f"window endpoint bound (h_max or h) must be <= H={H}, got {window.rule.bound()}")
+    window = check_window(H, window)
     e = min(endpoint(window.rule, d), H) if window.rule.kind == "hard" else endpoint(window.rule, d)
     e_star = effective_endpoint(H, d, e, s, window.overflow)
     return prefix_weights(H, d, e_star, window.schedule, window.parametrization)
