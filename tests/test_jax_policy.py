@@ -17,6 +17,7 @@ from softrtc.jax.policy import (  # noqa: E402
     MAX_PERIOD,
     MIN_PERIOD,
     FlowPolicy,
+    MLPMixerBlock,
     PolicyConfig,
     load_checkpoint,
     load_pure_dict,
@@ -318,6 +319,15 @@ def test_checkpoint_in_public_format_loads(tmp_path):
     pd["mlp_stack"] = {str(k): v for k, v in pd["mlp_stack"].items()}
     load_pure_dict(dst, pd)
     np.testing.assert_array_equal(np.asarray(dst(obs, x, t)), np.asarray(_tiny(12)(obs, x, t)))
+    # A truncated pickle, or an .npz given by mistake, is a ValueError naming the file.
+    bad = tmp_path / "bad.pkl"
+    bad.write_bytes(path.read_bytes()[:40])
+    with pytest.raises(ValueError, match="bad.pkl: not a readable pickled checkpoint"):
+        load_checkpoint(dst, bad)
+    npz = tmp_path / "x.npz"
+    np.savez(npz, a=np.zeros(2))
+    with pytest.raises(ValueError, match="x.npz: not a readable pickled checkpoint"):
+        load_checkpoint(dst, npz)
 
 
 def test_load_pure_dict_rejects_mismatches():
@@ -342,6 +352,8 @@ def test_load_pure_dict_rejects_mismatches():
         load_pure_dict(pol, mutated(lambda pd: pd["out_proj"].update(bias=np.full(3, np.nan, np.float32))))
     with pytest.raises(ValueError, match="pure_dict"):
         load_pure_dict(pol, [1, 2])
+    with pytest.raises(ValueError, match="'mlp_stack/0/.*' twice"):
+        load_pure_dict(pol, mutated(lambda pd: pd["mlp_stack"].update({"0": pd["mlp_stack"][0]})))
     with pytest.raises(ValueError, match="path"):
         load_checkpoint(pol, "/nonexistent/policies/x.pkl")
     # A failed load leaves the model untouched.
@@ -372,12 +384,20 @@ def test_input_validation():
         (lambda: FlowPolicy(obs_dim=3, action_dim=2, config={}, rngs=nnx.Rngs(0)), "config"),
         (lambda: PolicyConfig(channel_dim=15), "channel_dim must be even"),
         (lambda: PolicyConfig(num_layers=True), "num_layers"),
+        (lambda: sincos_time_embedding(jnp.array([0.5, 1.5]), 4), r"t must lie in \[0, 1\]"),
+        (lambda: MLPMixerBlock(H, 0, 16, 24, rngs=nnx.Rngs(0)), "token_hidden_dim"),
+        (lambda: pol.mlp_stack[0](jnp.zeros((2, H, 15)), jnp.zeros((1, 1, 48)), jnp.zeros((1, 1, 48))),
+         r"x must have shape \[B, 5, 16\]"),
+        (lambda: pol.mlp_stack[0](jnp.zeros((2, H, 16)), jnp.zeros((1, 1, 47)), jnp.zeros((1, 1, 48))), "m1"),
     ]
     for fn, msg in cases:
         with pytest.raises(ValueError, match=msg):
             fn()
     # Integer times are accepted (0 and 1 are valid flow times).
     assert _call(pol, obs, x, jnp.array([0, 1])).shape == (2, H, ACT)
+    # NumPy integer sizes are stored as int, so that the config serializes to JSON.
+    cfg = PolicyConfig(channel_dim=np.int64(16))
+    assert type(cfg.channel_dim) is int and cfg == PolicyConfig(channel_dim=16)
 
 
 def test_validation_under_jit_checks_shapes_only():

@@ -445,6 +445,10 @@ def test_checkpoint_rejects_damaged_files(tmp_path):
     bad_cfg = dict(header["policy"]["config"], channel_dim=7)
     expect("cfg.npz", lambda p: _write(p, dict(header, policy=dict(header["policy"], config=bad_cfg)), members),
            "policy constructor config")
+    # A single .npy array and NaN in the metadata are damaged files too, named in the message.
+    expect("single.npz", lambda p: np.save(open(p, "wb"), np.zeros(3)), r"single\.npz.*\.npy")
+    expect("nan.npz", lambda p: _write(p, dict(header, metadata={"a": float("nan")}), members, fix_checksum=False),
+           r"nan\.npz.*corrupt header")
     other = FlowPolicy(obs_dim=OBS, action_dim=ACT + 1, config=TINY, rngs=nnx.Rngs(0))
     with pytest.raises(ValueError, match="differs from the given policy"):
         C.load_checkpoint(path, other)

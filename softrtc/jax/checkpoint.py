@@ -188,7 +188,10 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
     try:
         with open(path, "rb") as f:
             raw = f.read()
-        with np.load(io.BytesIO(raw), allow_pickle=False) as npz:
+        loaded = np.load(io.BytesIO(raw), allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):  # a .npy file loads as a bare array
+            raise ValueError("a single array (.npy), not an .npz archive")
+        with loaded as npz:
             members = {name: npz[name] for name in npz.files}
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
         raise _fail(path, f"corrupt or not an .npz checkpoint (unreadable archive: {exc})") from exc
@@ -220,7 +223,11 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
         if not isinstance(spec, dict) or spec.get("dtype") != a.dtype.str or spec.get("shape") != list(a.shape):
             raise _fail(path, f"array '{name}' has dtype {a.dtype.str} and shape {list(a.shape)}, "
                               f"header says {spec}")
-    if header.get("checksum") != checkpoint_checksum(header, members):
+    try:
+        checksum = checkpoint_checksum(header, members)
+    except ValueError as exc:  # e.g. NaN in the metadata, which no writer of this format produces
+        raise _fail(path, f"corrupt header ({exc})") from exc
+    if header.get("checksum") != checksum:
         raise _fail(path, "checksum mismatch (the file was modified or damaged)")
     if not all(name.startswith(PARAM_PREFIX) for name in members):
         raise _fail(path, f"array names must start with '{PARAM_PREFIX}'")

@@ -120,7 +120,8 @@ class PolicyConfig:
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
-            _check_pos_int(f.name, getattr(self, f.name))
+            # Stored as plain int: a NumPy integer would not survive the JSON checkpoint header.
+            object.__setattr__(self, f.name, _check_pos_int(f.name, getattr(self, f.name)))
         if self.channel_dim % 2:
             raise ValueError(f"channel_dim must be even (sin-cos embedding), got {self.channel_dim}")
 
@@ -142,7 +143,7 @@ def sincos_time_embedding(t: Any, embedding_dim: int) -> jax.Array:
     if embedding_dim % 2:
         raise ValueError(f"embedding_dim must be even, got {embedding_dim}")
     t = _as_float_array("t", t, allow_int=True)
-    _check_finite("t", t)
+    _check_unit_interval("t", t)
     fraction = jnp.linspace(0.0, 1.0, embedding_dim // 2)
     period = MIN_PERIOD * (MAX_PERIOD / MIN_PERIOD) ** fraction
     # Same operation order as the public release (1/period, then *2, then *pi) so that
@@ -331,6 +332,9 @@ class MLPMixerBlock(nnx.Module):
     def __init__(
         self, token_dim: int, token_hidden_dim: int, channel_dim: int, channel_hidden_dim: int, *, rngs: nnx.Rngs
     ):
+        for name, value in (("token_dim", token_dim), ("token_hidden_dim", token_hidden_dim),
+                            ("channel_dim", channel_dim), ("channel_hidden_dim", channel_hidden_dim)):
+            _check_pos_int(name, value)
         self.token_mix_in = nnx.Linear(token_dim, token_hidden_dim, use_bias=False, rngs=rngs)
         self.token_mix_out = nnx.Linear(token_hidden_dim, token_dim, use_bias=False, rngs=rngs)
         self.channel_mix_in = nnx.Linear(channel_dim, channel_hidden_dim, use_bias=False, rngs=rngs)
@@ -347,6 +351,17 @@ class MLPMixerBlock(nnx.Module):
         return {"adaln_1": self.adaln_1(time_features), "adaln_2": self.adaln_2(time_features)}
 
     def __call__(self, x: jax.Array, m1: jax.Array, m2: jax.Array) -> jax.Array:
+        """One block on ``x [B, H, C]`` with modulations ``m1``, ``m2`` ``[b, h, 3C]`` [P-4], [P-15]."""
+        x = _as_float_array("x", x)
+        H, C = self.token_mix_in.in_features, self.channel_mix_in.in_features
+        if x.ndim != 3 or x.shape[1:] != (H, C):
+            raise ValueError(f"x must have shape [B, {H}, {C}], got {list(x.shape)}")
+        _check_finite("x", x)
+        for name, m in (("m1", m1), ("m2", m2)):
+            m = _as_float_array(name, m)
+            if m.ndim != 3 or m.shape[0] not in (1, x.shape[0]) or m.shape[1] not in (1, H) or m.shape[2] != 3 * C:
+                raise ValueError(f"{name} must have shape [b, h, {3 * C}] with b in {{1, {x.shape[0]}}} and "
+                                 f"h in {{1, {H}}}, got {list(m.shape)}")
         return self.channel_mixing(self.token_mixing(x, m1), m2)
 
     def token_mixing(self, x: jax.Array, m1: jax.Array, pullback: Mapping | None = None) -> jax.Array:
@@ -734,6 +749,8 @@ def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
         if key not in by_name:
             # A leaf where the model has a subtree is also "unexpected" at this path.
             raise ValueError(f"pure_dict has unexpected key '{_path_str(key)}' (not a parameter of this FlowPolicy)")
+        if key in given:  # e.g. layer 0 given both as 0 and as "0"
+            raise ValueError(f"pure_dict gives key '{_path_str(key)}' twice (as {path!r} and another spelling)")
         given[key] = leaf
     for key, path in by_name.items():
         if key not in given:
@@ -775,7 +792,10 @@ def load_checkpoint(model: FlowPolicy, path: str | os.PathLike) -> FlowPolicy:
     """
     if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
         raise ValueError(f"path must name an existing checkpoint file, got {path!r}")
-    with open(path, "rb") as f:
-        pure = pickle.load(f)
+    try:
+        with open(path, "rb") as f:
+            pure = pickle.load(f)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError, TypeError) as exc:
+        raise ValueError(f"{os.fspath(path)}: not a readable pickled checkpoint ({type(exc).__name__}: {exc})") from exc
     return load_pure_dict(model, pure)
 
