@@ -675,6 +675,11 @@ def test_twin_rejects_what_jax_would_clamp_wrap_or_broadcast():
          r"^rule.h_max must be"),
         (lambda: JE.endpoint(JE.EndpointRule(lam=jnp.float32(1), h_max=jnp.int32(3), length=jnp.int32(0),
                                              kind="bogus"), 1), r"^rule.kind must be one of"),
+        # E-1: a parameter the rule does not have is an error, not ignored.
+        (lambda: JE.endpoint(JE.EndpointRule(lam=jnp.float32(1), h_max=jnp.int32(0), length=jnp.int32(0),
+                                             kind="hard"), 1), r"^rule.lam is not a parameter of the 'hard'"),
+        (lambda: R.endpoints.EndpointRule("hard", lam=float("nan")), r"^lam is not a parameter"),
+        (lambda: R.endpoints.EndpointRule("delay_scaled", lam=2.0, h_max=5, length=-7), r"^length is not"),
     ]
     vf = lambda o, x, t: x  # noqa: E731
     probs = JD.delay_probs("uniform", 0, 4)

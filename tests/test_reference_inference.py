@@ -108,10 +108,11 @@ def test_method_weights_table():
     np.testing.assert_allclose(soft, W.prefix_weights(8, 2, 4, "exp"))
     assert soft[4:].sum() == 0 and 0 < soft[2] < 1
     f, obs, noise, prior = make()
-    assert np.array_equal(Mth.generate_chunk("train_soft", f, obs, noise, None, 4, 0, 5),
-                          S.naive_sample(f, obs, noise, 5))
-    with pytest.raises(ValueError, match="d must be"):
-        Mth.generate_chunk("train_soft", f, obs, noise, None, 4, 2, 5)
+    for method in Mth.METHODS:  # every method's first chunk is the naive sampler, d = 0
+        assert np.array_equal(Mth.generate_chunk(method, f, obs, noise, None, 4, 0, 5),
+                              S.naive_sample(f, obs, noise, 5)), method
+        with pytest.raises(ValueError, match="d must be"):
+            Mth.generate_chunk(method, f, obs, noise, None, 4, 2, 5)
 
 
 def test_guidance_weight_values():

@@ -33,10 +33,11 @@ def delay_probs(dist: str, d_min: int, d_max: int, decay=1.0) -> jax.Array:
     v.check_choice("dist", dist, DISTRIBUTIONS)
     d_min = v.check_int("d_min", d_min, 0, MAX_DELAY)
     d_max = v.check_int("d_max", d_max, d_min, MAX_DELAY)
+    # decay is checked for both distributions: a bad value is a mistake even where it is unused.
+    decay = v.real_value("decay", decay, 0.0, 64.0)
     n = d_max - d_min + 1
     if dist == "uniform":
         return jnp.full((n,), 1.0 / n, jnp.float32)
-    decay = v.real_value("decay", decay, 0.0, 64.0)
     # logits start at 0 and decrease, so exp never overflows ([D-2]).
     p = jnp.exp(-decay * jnp.arange(n, dtype=jnp.float32))
     return p / jnp.sum(p)

@@ -29,10 +29,11 @@ def delay_probs(dist: str, d_min: int, d_max: int, decay: float = 1.0) -> np.nda
     check_choice("dist", dist, DISTRIBUTIONS)
     d_min = check_int("d_min", d_min, 0, MAX_DELAY)
     d_max = check_int("d_max", d_max, d_min, MAX_DELAY)
+    # decay is checked for both distributions: a bad value is a mistake even where it is unused.
+    decay = check_real("decay", decay, 0.0, 64.0)
     n = d_max - d_min + 1
     if dist == "uniform":
         return np.full(n, 1.0 / n)
-    decay = check_real("decay", decay, 0.0, 64.0)
     logits = -decay * np.arange(n, dtype=np.float64)
     p = np.exp(logits - logits.max())
     return p / p.sum()

@@ -51,6 +51,12 @@ class EndpointRule:
             check_int("h_max", self.h_max, 0, MAX_WINDOW)
         elif self.kind == "fixed":
             check_int("length", self.length, 0, MAX_WINDOW)
+        used = {"delay_scaled": ("lam", "h_max"), "offset": ("length", "h_max"), "fixed": ("length",),
+                "hard": ()}[self.kind]
+        for name in ("lam", "h_max", "length"):
+            if name not in used and getattr(self, name) is not None:
+                raise ValueError(f"{name} is not a parameter of the {self.kind!r} rule and must be None, "
+                                 f"got {getattr(self, name)!r}")
 
     def bound(self) -> int:
         """Largest endpoint the rule can return for any d (used to check e <= H)."""
