@@ -243,3 +243,23 @@ def test_vjp_ablation_cli_end_to_end(tmp_path, capsys):
     assert "calls" in capsys.readouterr().err
     with pytest.raises(ValueError, match="run_vjp_ablation"):
         bench.format_vjp_table({})
+
+
+def test_agreement_check_reports_a_disagreement(monkeypatch):
+    """B-5: the agreement check compares against the straightforward chunks it is given, so a
+    straightforward path off by 1e-3 is reported as not ok with that difference."""
+    config = bench.BenchConfig(**TINY)
+    policy = bench.make_policy(config)
+    honest = bench._straightforward_fn
+
+    def off_by(graphdef, treedef, method, window, s, T):
+        fn = honest(graphdef, treedef, method, window, s, T)
+        return lambda *args: fn(*args) + 1e-3
+
+    names = ("naive", "train_soft_lam2")
+    good = bench.check_agreement(config, policy, 1, names)
+    assert all(a["ok"] and a["max_abs_diff"] <= 1e-4 for a in good.values())
+    monkeypatch.setattr(bench, "_straightforward_fn", off_by)
+    bad = bench.check_agreement(config, policy, 1, names)
+    for a in bad.values():
+        assert not a["ok"] and a["max_abs_diff"] == pytest.approx(1e-3, rel=0.2)

@@ -112,7 +112,12 @@ def test_time_convention_and_noise_symbols():
     x1, _ = corruption.corrupt(a, n, np.zeros(2), 1.0)
     assert np.array_equal(x0, n) and np.array_equal(x1, a)
     assert loss.ETA == 1e-8
-    assert "eta" in loss.flow_matching_loss.__code__.co_varnames
+    # eta is the denominator's constant, not the noise: with l_j = 1 on one free token,
+    # L = 1 / (1 + eta), whatever the noise.
+    pred, acts, noise = np.zeros((2, 1)), np.ones((2, 1)), np.zeros((2, 1))
+    w = np.array([1.0, 0.0])
+    assert loss.flow_matching_loss(pred, acts, noise, w, eta=0.25) == 1.0 / 1.25
+    assert loss.flow_matching_loss(pred, acts, noise, w) == 1.0 / (1.0 + 1e-8)
 
 
 def test_float64_and_determinism():

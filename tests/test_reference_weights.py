@@ -21,13 +21,6 @@ def rules_within(H):
     )
 
 
-rules = st.one_of(
-    st.builds(E.delay_scaled, st.sampled_from([0.0, 0.5, 1.0, 1.25, 1.5, 2.0, 3.0, 4.0]), st.integers(0, 16)),
-    st.builds(E.offset, st.integers(0, 8), st.integers(0, 16)),
-    st.builds(E.fixed, st.integers(0, 16)),
-    st.just(E.hard()),
-)
-
 
 @st.composite
 def configs(draw):
