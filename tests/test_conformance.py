@@ -64,9 +64,14 @@ def test_torch_adapters_pass(impl, vector_files):
 
 @pytest.mark.skipif(not HAS_TORCH, reason="torch not installed")
 def test_torch_adapter_by_path_and_module():
-    """[CF-12], [CF-7] Adapters load by built-in name, by file path with :ATTR and by module:ATTR."""
+    """[CF-12], [CF-7] Adapters load by built-in name, by file path with :ATTR and by module:ATTR; the
+    port's files are submodules of one package, so the flipped adapter's relative import of .adapter
+    gives the very module the `torch` built-in loads."""
     a = load_adapter(str(ROOT / "conformance" / "torch_port" / "adapter_flipped.py") + ":ADAPTER")
     assert a.name == "torch-flipped" and a.time_convention == "noise_at_1"
+    plain = load_adapter("torch")
+    assert isinstance(a, type(plain)) and type(plain).__module__.endswith(".adapter")
+    assert not type(plain).__module__.startswith("torch_port")
     assert load_adapter("softrtc.conformance.adapters.reference:ADAPTER").name == "reference"
     assert load_adapter("softrtc.conformance.adapters.reference").name == "reference"
 
@@ -236,6 +241,130 @@ def test_case_structure_and_tolerances(vector_files):
                 assert case["tolerance"] == {"abs": 0.0, "rel": 0.0}
 
 
+def test_loss_reject_case_is_named_for_its_input(vector_files):
+    """[CF-4], [N-7] The loss rejection case holds the invalid input its id names (weights above one)."""
+    cases = {c["id"]: c for d in vector_files for c in d["cases"]}
+    case = cases["L.loss.reject.weights-above-one"]
+    assert case["expected"] == {"error": "ValueError"} and max(case["args"]["weights"]) > 1.0
+    assert not [cid for cid in cases if "nan" in cid.lower()]  # JSON vectors hold no NaN input ([CF-23])
+
+
+class _Recorder(ReferenceAdapter):
+    """The reference, recording the type of every argument it receives."""
+
+    name = "recorder"
+
+    def __init__(self):
+        self.seen = []
+
+    def endpoint(self, rule, d):
+        self.seen.append(("endpoint", {"d": d}))
+        return super().endpoint(rule, d)
+
+    def execute_chunks(self, chunks, delays_, s):
+        self.seen.append(("execute_chunks", {"chunks": chunks, "delays": delays_, "s": s}))
+        return super().execute_chunks(chunks, delays_, s)
+
+    def boundary_jump(self, actions, chunk_index):
+        self.seen.append(("boundary_jump", {"chunk_index": chunk_index}))
+        return super().boundary_jump(actions, chunk_index)
+
+    def bootstrap_interval(self, values, indices, confidence):
+        self.seen.append(("bootstrap_interval", {"values": values, "indices": indices, "confidence": confidence}))
+        return super().bootstrap_interval(values, indices, confidence)
+
+
+def test_argument_types(vector_files):
+    """[CF-7], [CF-23] Float arrays arrive as float64 arrays; delays, indices and chunk_index as int64
+    arrays (float64 when the file writes a float element); scalars as int or float as written."""
+    rec = _Recorder()
+    res = runner.run(rec, files=vector_files, only={"endpoint", "execute_chunks", "boundary_jump",
+                                                    "bootstrap_interval"})
+    assert res.ok, runner.format_summary(res)
+    by = {}
+    for fname, args in rec.seen:
+        by.setdefault(fname, []).append(args)
+    assert {type(a["d"]) for a in by["endpoint"]} == {int, float}  # float only in E.endpoint.reject.float-d
+    assert sum(type(a["d"]) is float for a in by["endpoint"]) == 1
+    ex = by["execute_chunks"]
+    assert all(isinstance(a["delays"], np.ndarray) and a["chunks"].dtype == np.float64 and type(a["s"]) is int
+               for a in ex)
+    assert [a["delays"].dtype for a in ex].count(np.dtype(np.float64)) == 1  # X.execute_chunks.reject.float-d
+    assert [a["delays"].dtype for a in ex].count(np.dtype(np.int64)) == len(ex) - 1
+    assert all(a["chunk_index"].dtype == np.int64 for a in by["boundary_jump"])
+    assert all(a["indices"].dtype == np.int64 and a["values"].dtype == np.float64
+               and type(a["confidence"]) is float for a in by["bootstrap_interval"])
+
+
+_HEADER = '{"format_version":"1.0","spec_version":"0.1.0","cases":['
+
+
+def _endpoint_case(cid: str, d_text: str) -> str:
+    return ('{"id":"%s","function":"endpoint","requirements":["E-1"],"tolerance":{"abs":0.0,"rel":0.0},'
+            '"args":{"rule":{"kind":"hard"},"d":%s},"expected":{"error":"ValueError"}}' % (cid, d_text))
+
+
+def test_json_number_convention(tmp_path):
+    """[CF-23] A number written with a fraction or exponent is a float, one written without is an int,
+    whatever its value; NaN and Infinity are refused."""
+    texts = {"E.endpoint.int": "2", "E.endpoint.frac": "2.0", "E.endpoint.exp": "2e0", "E.endpoint.neg": "-1"}
+    (tmp_path / "numbers.json").write_text(_HEADER + ",".join(_endpoint_case(k, v) for k, v in texts.items())
+                                           + "]}")
+    rec = _Recorder()
+    runner.run(rec, vectors_dir=tmp_path)
+    assert [type(a["d"]) for _, a in rec.seen] == [int, float, float, int]
+    assert [a["d"] for _, a in rec.seen] == [2, 2.0, 2.0, -1]
+    for bad in ("NaN", "Infinity", "-Infinity"):
+        (tmp_path / "numbers.json").write_text(_HEADER + _endpoint_case("E.endpoint.x", bad) + "]}")
+        with pytest.raises(runner.VectorError, match="not a JSON number"):
+            runner.load_vectors(tmp_path)
+
+
+def _valid_case() -> dict:
+    return {"id": "E.endpoint.ok", "function": "endpoint", "requirements": ["E-1"],
+            "tolerance": {"abs": 0.0, "rel": 0.0}, "args": {"rule": {"kind": "hard"}, "d": 1}, "expected": {"e": 1}}
+
+
+@pytest.mark.parametrize("change,needle", [
+    (lambda c: c["args"].pop("d"), "lacks ['d']"),
+    (lambda c: c.update(function="endpoints"), "not an interface function"),
+    (lambda c: c["expected"].pop("e"), "lacks outputs ['e']"),
+    (lambda c: c.update(expected={"error": "ValueError", "e": 1}), "exactly"),
+    (lambda c: c["tolerance"].update(abs=-1.0), "tolerance 'abs'"),
+    (lambda c: c.update(requirements=[]), "non-empty list"),
+    (lambda c: c.update(args="d=1"), "'args' must be a dict"),
+    (lambda c: c.update(function="velocity", args={"field": "nope", "obs": [0.0], "x": [[0.0]], "t": [0.0]},
+                        expected={"velocity": [[0.0]]}), "'field' 'nope'"),
+])
+def test_malformed_case_is_status_2(tmp_path, change, needle):
+    """[CF-24], [CF-16] A malformed case in a readable vector file stops loading with one line naming the
+    file and the case; nothing runs."""
+    case = _valid_case()
+    change(case)
+    (tmp_path / "bad.json").write_text(json.dumps({"format_version": "1.0", "cases": [_valid_case(), case]}))
+    with pytest.raises(runner.VectorError) as info:
+        runner.load_vectors(tmp_path)
+    assert needle in str(info.value) and "bad.json: case 1" in str(info.value), str(info.value)
+
+
+def test_malformed_vectors_exit_2(tmp_path):
+    """[CF-24], [CF-16] From the command line: a duplicate case id, or an argument that is not a
+    rectangular array, exits 2 with one error line and no summary."""
+    (tmp_path / "a.json").write_text(json.dumps({"format_version": "1.0", "cases": [_valid_case()]}))
+    (tmp_path / "b.json").write_text(json.dumps({"format_version": "1.0", "cases": [_valid_case()]}))
+    r = _cli("run", "--impl", "reference", "--vectors", str(tmp_path))
+    assert r.returncode == 2 and r.stdout == "" and "already used in a.json" in r.stderr, r.stdout + r.stderr
+    (tmp_path / "b.json").unlink()
+    ragged = {"id": "M.standard_error.ragged", "function": "standard_error", "requirements": ["M-6"],
+              "tolerance": {"abs": 1e-5, "rel": 1e-5}, "args": {"values": [[1.0, 2.0], [3.0]]},
+              "expected": {"value": 0.0}}
+    (tmp_path / "a.json").write_text(json.dumps({"format_version": "1.0", "cases": [_valid_case(), ragged]}))
+    r = _cli("run", "--impl", "reference", "--vectors", str(tmp_path))
+    assert r.returncode == 2 and r.stdout == "" and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[0].startswith("error: a.json: case 'M.standard_error.ragged': argument "
+                                                       "'values' is not a rectangular array"), r.stderr
+
+
 def test_vector_format_version_checked(tmp_path):
     """[CF-2] The runner refuses vector files of another format major version with one line."""
     (tmp_path / "x.json").write_text(json.dumps({"format_version": "2.0", "cases": []}))
@@ -246,15 +375,125 @@ def test_vector_format_version_checked(tmp_path):
 
 
 def test_comparison_rule():
-    """[CF-5] |got - want| <= abs + rel |want| elementwise; integers exactly; shapes must match."""
+    """[CF-5] |got - want| <= abs + rel |want| elementwise; integers exactly; shapes must match. A failure
+    carries its error ratio (inf when nothing could be compared) and prints plain numbers."""
     tol = {"abs": 1e-5, "rel": 1e-5}
     assert runner.compare("w", np.float32(0.1), 0.1, tol) <= 1.0
-    with pytest.raises(runner.CaseFailure, match="x tolerance"):
+    with pytest.raises(runner.CaseFailure, match="x tolerance") as info:
         runner.compare("w", 0.1002, 0.1, tol)
-    with pytest.raises(runner.CaseFailure, match="exact match"):
-        runner.compare("e", 3, 4, {"abs": 0.0, "rel": 0.0}, integer=True)
-    with pytest.raises(runner.CaseFailure, match="shape"):
+    assert info.value.ratio == pytest.approx(2e-4 / (1e-5 + 1e-6), rel=1e-6)
+    with pytest.raises(runner.CaseFailure) as info:
+        runner.compare("w", np.array([0.1, 0.1002]), [0.1, 0.1], tol)
+    assert str(info.value) == "w[1]: got 0.1002, expected 0.1 (18.2 x tolerance)"
+    assert info.value.ratio == pytest.approx(2e-4 / (1e-5 + 1e-6), rel=1e-6)
+    with pytest.raises(runner.CaseFailure, match="exact match") as info:
+        runner.compare("e", np.array([3]), [4], {"abs": 0.0, "rel": 0.0}, integer=True)
+    assert str(info.value) == "e[0]: got 3, expected 4 (exact match required)" and info.value.ratio == np.inf
+    with pytest.raises(runner.CaseFailure, match="shape") as info:
         runner.compare("w", np.zeros(3), [0.0, 0.0], tol)
+    assert info.value.ratio == np.inf
+
+
+def test_failed_cases_report_their_error_ratio(vector_files, tmp_path):
+    """[CF-5], [CF-14], [CF-15] A failing requirement reports the worst ratio of its failed cases, in the
+    summary and in the JSON report: finite when numbers were out of tolerance, inf when an exact match
+    failed; never 0."""
+    ref = ReferenceAdapter()
+    off = _Only(hard_weights=lambda H, d: ref.hard_weights(H, d) + 1e-4,
+                endpoint=lambda rule, d: ref.endpoint(rule, d) + 1)
+    res = runner.run(off, files=vector_files, only={"hard_weights", "endpoint"})
+    hw = [c for c in res.cases if c.function == "hard_weights"]
+    assert hw and all(c.status == "fail" and 1.0 < c.worst < 11.0 for c in hw)
+    assert all("np.float64" not in c.message for c in res.cases)
+    reqs = res.by_requirement()
+    assert reqs["W-8"]["status"] == "FAIL" and 1.0 < reqs["W-8"]["worst"] < 11.0
+    assert reqs["E-5"]["status"] == "FAIL" and reqs["E-5"]["worst"] == np.inf
+    lines = runner.format_summary(res).splitlines()
+    w8 = next(line for line in lines if line.split()[:2] == ["FAIL", "W-8"])
+    assert 1.0 < float(w8.split()[3]) < 11.0
+    e5 = next(line for line in lines if line.split()[:2] == ["FAIL", "E-5"])
+    assert e5.split()[2:5] == ["worst", "inf", "x"]
+    rep = runner.report_dict(res)
+    assert 1.0 < rep["requirements"]["W-8"]["worst"] < 11.0 and rep["requirements"]["E-5"]["worst"] == "inf"
+    assert all(c["worst"] == "inf" or c["worst"] > 1.0 for c in rep["cases"] if c["status"] == "fail")
+    json.dumps(rep, allow_nan=False)  # the report stays strict JSON
+
+
+# ---------------------------------------------------------------- SystemExit and other BaseExceptions
+
+def _exit(*_args):
+    sys.exit(0)
+
+
+def test_system_exit_in_a_case_fails_the_case(vector_files):
+    """[CF-18], [CF-16] A case function or to_numpy raising SystemExit (any BaseException but
+    KeyboardInterrupt) fails its case with one line naming the exception; KeyboardInterrupt stops the run."""
+    res = runner.run(_Only(endpoint=_exit), files=vector_files, only={"endpoint"})
+    assert not res.ok and res.counts["fail"] == res.counts["pass"] + res.counts["fail"] > 0
+    ok_cases = [c for c in res.cases if not c.id.startswith("E.endpoint.reject.")]
+    assert all(c.message.startswith("endpoint raised SystemExit: 0") for c in ok_cases), ok_cases[0].message
+    rejects = [c for c in res.cases if c.id.startswith("E.endpoint.reject.")]
+    assert rejects and all("invalid input must raise ValueError, endpoint raised SystemExit" in c.message
+                           for c in rejects)
+    assert all(c.worst == np.inf for c in res.cases)
+
+    class ExitingConversion:
+        name = "exiting-conversion"
+        hard_weights = staticmethod(ReferenceAdapter().hard_weights)
+        to_numpy = staticmethod(_exit)
+    res = runner.run(ExitingConversion(), files=vector_files, only={"hard_weights"})
+    assert not res.ok and all("cannot convert" in c.message and "SystemExit" in c.message for c in res.cases)
+
+    def interrupt(rule, d):
+        raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(_Only(endpoint=interrupt), files=vector_files, only={"endpoint"})
+
+
+def test_cli_system_exit_is_never_a_pass(tmp_path):
+    """[CF-18], [CF-16] From the command line: an adapter whose case function calls sys.exit(0) exits 1
+    naming SystemExit; one that raises SystemExit while being imported exits 2 with one error line."""
+    in_case = tmp_path / "exits_in_case.py"
+    in_case.write_text("import sys\nname = 'exits'\n\ndef endpoint(rule, d):\n    sys.exit(0)\n")
+    r = _cli("run", "--impl", str(in_case), "--only", "endpoint")
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "endpoint raised SystemExit: 0 (exits_in_case.py:5)" in r.stdout and "Traceback" not in r.stderr
+    at_import = tmp_path / "exits_at_import.py"
+    at_import.write_text("import sys\nsys.exit()\n")
+    r = _cli("run", "--impl", str(at_import))
+    assert r.returncode == 2 and r.stdout == "" and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [f"error: cannot import adapter module '{at_import}' for impl "
+                                             f"'{at_import}': SystemExit"]
+    with pytest.raises(AdapterError, match="SystemExit: 3"):
+        bad = tmp_path / "exits_three.py"
+        bad.write_text("raise SystemExit(3)\n")
+        load_adapter(str(bad))
+
+
+# ---------------------------------------------------------------- loading adapter files by path
+
+_REF_ENDPOINT = ("from softrtc.conformance.adapters.reference import ReferenceAdapter\n"
+                 "name = {name!r}\nendpoint = ReferenceAdapter().endpoint\n")
+
+
+def test_adapter_file_named_like_a_standard_module(tmp_path):
+    """[CF-12] `--impl dir/random.py` loads that file, not the standard `random`, and leaves `random`
+    intact; a package directory named like a standard package (json/) keeps its relative imports."""
+    import random
+    f = tmp_path / "random.py"
+    f.write_text(_REF_ENDPOINT.format(name="my-random"))
+    a = load_adapter(str(f))
+    assert a.name == "my-random" and a.__file__ == str(f.resolve())
+    assert sys.modules["random"] is random and callable(random.random)
+    pkg = tmp_path / "json"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "helper.py").write_text(_REF_ENDPOINT.format(name="pkg-json"))
+    (pkg / "adapter.py").write_text("from .helper import endpoint, name\n")
+    b = load_adapter(f"{pkg / 'adapter.py'}")
+    assert b.name == "pkg-json" and sys.modules["json"] is json
+    r = _cli("run", "--impl", str(f), "--only", "endpoint")
+    assert r.returncode == 0 and "adapter 'my-random'" in r.stdout, r.stdout + r.stderr
 
 
 def test_generate_rejects_file_as_out_dir(tmp_path):

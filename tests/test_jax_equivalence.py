@@ -720,3 +720,28 @@ def test_method_request_checked_whole():
             JM.generate_chunk(method, JFIELD, obs, noise, None, 4, 0, 2, window="junk")
         with pytest.raises(ValueError, match="window"):
             JM.generate_chunk_conditioned(method, JFIELD, obs, noise, None, 4, 0, 2, window="junk")
+
+
+def test_shapes_are_not_broadcast():
+    """N-7, N-1, S-3, V-3, M-7: the JAX twin rejects shapes XLA would broadcast and empty axes,
+    as the reference does, and accepts the documented batch forms."""
+    x = np.zeros((4, 2))
+    with pytest.raises(ValueError, match="weights must have shape"):
+        JS.blend(x, x, np.zeros(1))
+    with pytest.raises(ValueError, match="weights must have shape"):
+        JS.blend(np.zeros((4, 2)), np.zeros((4, 2)), np.zeros((2, 1)))
+    xb = np.ones((3, 4, 2))
+    w = np.array([1.0, 0.5, 0.0, 0.0])
+    np.testing.assert_allclose(JS.blend(xb, 0 * xb, w), np.broadcast_to((1 - w)[None, :, None], xb.shape))
+    np.testing.assert_allclose(JS.blend(xb, 0 * xb, np.tile(w, (3, 1))), JS.blend(xb, 0 * xb, w))
+    with pytest.raises(ValueError, match="t_flipped must be a scalar"):
+        JV.flipped_token_times(np.zeros(3), np.zeros((2, 3)))
+    wb = np.tile(np.array([1.0, 0.5, 0.0]), (2, 1))
+    np.testing.assert_allclose(JV.flipped_token_times(wb, np.array([0.2, 0.4])),
+                               (1 - wb) * np.array([[0.2], [0.4]]), rtol=1e-6)
+    with pytest.raises(ValueError, match="d"):
+        JMt.is_high_delay(-1)
+    with pytest.raises(ValueError, match="at least one entry"):
+        JC.corrupt(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0.5)
+    with pytest.raises(ValueError, match="at least one entry"):
+        R.corruption.corrupt(np.zeros((3, 0)), np.zeros((3, 0)), np.zeros(3), 0.5)

@@ -9,13 +9,16 @@ adapter lacks makes its cases *unsupported*, never failed ([CF-9]).
 Load one with :func:`load_adapter`: a built-in name (``reference``, ``jax``,
 ``torch``, ``torch-flipped``), ``package.module[:ATTR]`` or
 ``path/to/file.py[:ATTR]``. Without ``:ATTR`` the module's ``ADAPTER`` is used
-when present, else the module itself.
+when present, else the module itself. A file is imported from its path under a
+module name of its own, never by its stem ([CF-12]).
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.util
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -95,25 +98,69 @@ class AdapterError(Exception):
     """An adapter could not be loaded or is malformed; the message is one line."""
 
 
+def _module_name(path: Path) -> str:
+    """A module name no installed module uses, fixed per resolved path ([CF-12])."""
+    digest = hashlib.sha256(str(path).encode("utf-8")).hexdigest()[:12]
+    return f"_softrtc_adapter_{digest}_{_identifier(path.stem)}"
+
+
+def _identifier(stem: str) -> str:
+    return stem if stem.isidentifier() else re.sub(r"\W", "_", stem)
+
+
+def _exec_file(modname: str, path: Path, package_dir: Path | None = None):
+    """Execute ``path`` as module ``modname`` (a package when ``package_dir`` is given), registered in
+    sys.modules for the duration of the run and removed again if it fails to import."""
+    if modname in sys.modules:
+        return sys.modules[modname]
+    spec = importlib.util.spec_from_file_location(
+        modname, path, submodule_search_locations=None if package_dir is None else [str(package_dir)])
+    if spec is None or spec.loader is None:
+        raise AdapterError(f"adapter file {path} cannot be imported as a Python module")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[modname] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop(modname, None)
+        raise
+    return module
+
+
 def _import_path(path: Path):
-    """Import a file; a file inside a package directory (with __init__.py) is imported
-    as ``dirname.stem`` so that its relative imports work."""
+    """Import an adapter file under a name of its own ([CF-12]).
+
+    A file inside a package directory (one with ``__init__.py``) is imported as a submodule of that
+    package, itself imported under a unique name, so its relative imports work; any other file is
+    imported alone, its directory appended to the end of ``sys.path`` for helper modules beside it.
+    The file's stem never decides which module is imported, so ``dir/random.py`` is not the
+    standard ``random``.
+    """
     path = path.resolve()
     if not path.is_file():
         raise AdapterError(f"adapter file {path} does not exist")
-    if (path.parent / "__init__.py").is_file():
-        root, modname = str(path.parent.parent), f"{path.parent.name}.{path.stem}"
-    else:
-        root, modname = str(path.parent), path.stem
-    if root not in sys.path:
-        sys.path.insert(0, root)
-    return importlib.import_module(modname)
+    pkg_dir = path.parent
+    if (pkg_dir / "__init__.py").is_file():
+        package = _exec_file(_module_name(pkg_dir), pkg_dir / "__init__.py", package_dir=pkg_dir)
+        if path.name == "__init__.py":
+            return package
+        return _exec_file(f"{package.__name__}.{_identifier(path.stem)}", path)
+    if str(pkg_dir) not in sys.path:
+        sys.path.append(str(pkg_dir))
+    return _exec_file(_module_name(path), path)
+
+
+def _fatal(exc: BaseException) -> bool:
+    """Whether ``exc`` must stop the run instead of being reported: only KeyboardInterrupt ([CF-18])."""
+    return isinstance(exc, KeyboardInterrupt)
 
 
 def load_adapter(spec: str):
     """Adapter object for a built-in name, ``module[:ATTR]`` or ``file.py[:ATTR]`` ([CF-12]).
 
-    Raises AdapterError with a one-line message for anything that goes wrong.
+    Raises AdapterError with a one-line message for anything that goes wrong, including a
+    SystemExit or other BaseException raised while importing the adapter ([CF-16], [CF-18]);
+    only KeyboardInterrupt passes through.
     """
     if not isinstance(spec, str) or not spec.strip():
         raise AdapterError("impl must be a non-empty string: a built-in name "
@@ -127,9 +174,11 @@ def load_adapter(spec: str):
             module = importlib.import_module(mod_part)
     except AdapterError:
         raise
-    except Exception as exc:  # any import failure becomes one clear line
+    except BaseException as exc:  # any import failure, SystemExit included, becomes one clear line
+        if _fatal(exc):
+            raise
         raise AdapterError(f"cannot import adapter module '{mod_part}' for impl '{spec}': "
-                           f"{type(exc).__name__}: {_first_line(exc)}") from None
+                           f"{_describe(exc)}") from None
     if attr:
         if not hasattr(module, attr):
             raise AdapterError(f"adapter module '{mod_part}' has no attribute '{attr}'")
@@ -165,3 +214,9 @@ def supported_functions(adapter) -> list[str]:
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return text[0] if text else ""
+
+
+def _describe(exc: BaseException) -> str:
+    """``Type: first line`` of an exception, or ``Type`` alone when it has no message (``sys.exit()``)."""
+    line = _first_line(exc)[:300]
+    return f"{type(exc).__name__}: {line}" if line else type(exc).__name__

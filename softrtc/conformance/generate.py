@@ -260,7 +260,7 @@ def gen_loss() -> _Cases:
         c.add(f"L.batch_loss.H{H}A{A}.B{B}", "batch_loss", ["L-1", "L-2", "L-3"], TOL_ARITH,
               {"preds": preds, "actions": acts_b, "noise": noise_b, "weights": wb},
               {"loss": loss.batch_loss(preds, acts_b, noise_b, wb)})
-    c.error("L.loss.reject.nan-pred", "loss", ["L-1", "N-7"],
+    c.error("L.loss.reject.weights-above-one", "loss", ["L-1", "N-7"],
             {"pred": [[0.0]], "actions": [[0.0]], "noise": [[0.0]], "weights": [2.0]})
     return c
 

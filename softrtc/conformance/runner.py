@@ -6,6 +6,8 @@ Every case is one call of one interface function. A case passes when every
 expected number agrees within its tolerance: ``|got - want| <= abs + rel * |want|``
 elementwise, integers exactly ([CF-5]). Outputs of a "noise_at_1" adapter are
 mapped onto the spec (t = 1 - t', v = -u) before comparing ([CF-10], [V-1]).
+Vector files are parsed with the number convention of [CF-23] (a fraction or
+exponent makes a float) and a malformed case stops the run with status 2 ([CF-24]).
 """
 
 from __future__ import annotations
@@ -25,15 +27,15 @@ import numpy as np
 
 from .._cli_util import comma_list, input_dir, output_file
 from . import FORMAT_VERSION
-from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, load_adapter,
-                      supported_functions)
+from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, _describe, _fatal,
+                      load_adapter, supported_functions)
 
 DEFAULT_VECTORS = Path(__file__).resolve().parents[2] / "conformance" / "vectors"
 
-# Arguments that are arrays in the interface; everything else is passed as parsed from JSON.
+# Arguments that are arrays in the interface ([CF-7]); everything else is passed as parsed from JSON ([CF-23]).
 FLOAT_ARRAYS = {"actions", "noise", "weights", "pred", "preds", "obs", "x", "cotangent", "prior", "prev", "chunks",
                 "probs", "values"}
-INT_ARRAYS = {"indices", "chunk_index"}
+INT_ARRAYS = {"indices", "chunk_index", "delays"}
 MAX_LISTED_FAILURES = 25
 
 
@@ -46,7 +48,7 @@ class CaseResult:
     function: str
     requirements: list
     status: str
-    worst: float = 0.0  # largest |got - want| / tolerance over the case's numbers
+    worst: float = 0.0  # largest |got - want| / tolerance over the case's numbers; inf when none could be compared
     message: str = ""
     seconds: float = 0.0
 
@@ -96,19 +98,30 @@ class VectorError(Exception):
     """The vector directory is missing or holds files this runner cannot read."""
 
 
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not a JSON number (vector files hold finite numbers only, [CF-3])")
+
+
+def parse_json(text: str):
+    """JSON text to Python under the number convention of [CF-23]: a number written with a fraction or an
+    exponent is a float, one written without is an int; NaN and Infinity are refused."""
+    return json.loads(text, parse_float=float, parse_int=int, parse_constant=_reject_constant)
+
+
 def load_vectors(directory=None) -> list[dict]:
-    """Read every vector file of ``directory`` (index.json excluded), checking format_version ([CF-2])."""
+    """Read every vector file of ``directory`` (index.json excluded), checking format_version ([CF-2])
+    and the structure of every case ([CF-24]); raise VectorError naming the first problem."""
     d = Path(directory) if directory is not None else DEFAULT_VECTORS
     if not d.is_dir():
         raise VectorError(f"vectors directory {d} {'is not a directory' if d.exists() else 'does not exist'}")
     files = sorted(p for p in d.glob("*.json") if p.name != "index.json")
     if not files:
         raise VectorError(f"vectors directory {d} holds no *.json vector files")
-    out = []
+    out, seen = [], {}
     major = FORMAT_VERSION.split(".")[0]
     for p in files:
         try:
-            data = json.loads(p.read_text(encoding="utf-8"))
+            data = parse_json(p.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise VectorError(f"cannot read vector file {p}: {exc}") from None
         if not isinstance(data, dict):
@@ -119,15 +132,23 @@ def load_vectors(directory=None) -> list[dict]:
             raise VectorError(f"{p.name}: format_version {fv!r} is not readable by this runner (needs {major}.x)")
         if not isinstance(data.get("cases"), list):
             raise VectorError(f"{p.name}: missing 'cases' list")
+        fields = data.get("fields", {})
+        if not isinstance(fields, dict):
+            raise VectorError(f"{p.name}: 'fields' must be a JSON object, got {type(fields).__name__}")
         for i, case in enumerate(data["cases"]):
-            _check_case_shape(p.name, i, case)
+            _check_case_shape(p.name, i, case, fields)
+            if case["id"] in seen:
+                raise VectorError(f"{p.name}: case {i}: id {case['id']!r} already used in {seen[case['id']]} ([CF-6])")
+            seen[case["id"]] = p.name
         data["_file"] = p.name
         out.append(data)
     return out
 
 
-def _check_case_shape(file: str, i: int, case) -> None:
-    """The fields every case has ([CF-2], spec/vectors.schema.json), so a malformed file fails in one line."""
+def _check_case_shape(file: str, i: int, case, fields: dict) -> None:
+    """Raise VectorError unless ``case`` is well formed ([CF-6], [CF-24], spec/vectors.schema.json): its
+    fields and their types, a known interface function, every argument of that function, a named field
+    present in the file, a finite non-negative tolerance, and either every output or ``error``."""
     where = f"{file}: case {i}"
     if not isinstance(case, dict):
         raise VectorError(f"{where} must be a JSON object, got {type(case).__name__}")
@@ -136,8 +157,36 @@ def _check_case_shape(file: str, i: int, case) -> None:
         if not isinstance(case.get(key), kind):
             raise VectorError(f"{where} ({case.get('id', '?')!r}): '{key}' must be a {kind.__name__}, "
                               f"got {type(case.get(key)).__name__}")
-    if not all(isinstance(r, str) for r in case["requirements"]):
-        raise VectorError(f"{where} ({case['id']!r}): 'requirements' must be a list of strings")
+    where = f"{where} ({case['id']!r})"
+    if not case["requirements"] or not all(isinstance(r, str) for r in case["requirements"]):
+        raise VectorError(f"{where}: 'requirements' must be a non-empty list of strings")
+    fn = INTERFACE.get(case["function"])
+    if fn is None:
+        raise VectorError(f"{where}: 'function' {case['function']!r} is not an interface function ([CF-7])")
+    missing = [a for a in fn.args if a not in case["args"]]
+    if missing:
+        raise VectorError(f"{where}: 'args' lacks {missing} of {case['function']}({', '.join(fn.args)})")
+    if "field" in fn.args:
+        name = case["args"]["field"]
+        if not isinstance(name, str) or not isinstance(fields.get(name), dict) \
+                or not isinstance(fields[name].get("params"), dict):
+            raise VectorError(f"{where}: 'field' {name!r} names no field with 'params' in the file's 'fields'")
+    tol = case["tolerance"]
+    for key in ("abs", "rel"):
+        v = tol.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise VectorError(f"{where}: tolerance '{key}' must be a finite number >= 0, got {v!r}")
+    exp = case["expected"]
+    if "error" in exp:
+        if exp != {"error": "ValueError"}:
+            raise VectorError(f"{where}: an error case's 'expected' must be exactly {{'error': 'ValueError'}}")
+        return
+    missing = [k for k in fn.outputs if k not in exp]
+    if missing:
+        raise VectorError(f"{where}: 'expected' lacks outputs {missing} of {case['function']}")
+    if "trace" in fn.outputs and not (isinstance(exp["trace"], list)
+                                      and all(isinstance(st, dict) for st in exp["trace"])):
+        raise VectorError(f"{where}: expected 'trace' must be a list of per-step objects")
 
 
 # ---------------------------------------------------------------- calling
@@ -146,18 +195,35 @@ def _field_params(data: dict, name) -> dict:
     fields = data.get("fields", {})
     if name not in fields:
         raise VectorError(f"{data['_file']}: case names unknown field {name!r}")
-    return {k: np.asarray(v, dtype=np.float64) for k, v in fields[name]["params"].items()}
+    return {k: _array(f"field {name!r} {k}", v, np.float64) for k, v in fields[name]["params"].items()}
+
+
+def _all_ints(value) -> bool:
+    """Whether every number of a (nested) JSON list was written as an integer ([CF-23])."""
+    if isinstance(value, list):
+        return all(_all_ints(v) for v in value)
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _array(what: str, value, dtype) -> np.ndarray:
+    try:
+        return np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise VectorError(f"{what} is not a rectangular array of numbers ({_line(exc)})") from None
 
 
 def _prepare_arg(key: str, value, data: dict):
+    """One argument as the adapter receives it ([CF-7], [CF-23]): float arrays as float64 arrays,
+    integer sequences as int64 arrays (float64 when an element is written as a float, so the
+    implementation sees the non-integer it must reject), the rest as parsed."""
     if key == "field":
         return _field_params(data, value)
     if value is None or isinstance(value, (str, dict, bool)):
         return value
     if key in FLOAT_ARRAYS or (key == "t" and isinstance(value, list)):
-        return np.asarray(value, dtype=np.float64)
+        return _array(f"argument {key!r}", value, np.float64)
     if key in INT_ARRAYS:
-        return np.asarray(value, dtype=np.int64)
+        return _array(f"argument {key!r}", value, np.int64 if _all_ints(value) else np.float64)
     return value
 
 
@@ -166,8 +232,11 @@ def build_args(fn: Fn, case: dict, data: dict, flipped: bool) -> list:
     args = []
     for key in fn.args:
         if key not in case["args"]:
-            raise VectorError(f"case {case['id']} lacks argument {key!r}")
-        v = _prepare_arg(key, case["args"][key], data)
+            raise VectorError(f"{data['_file']}: case {case['id']!r} lacks argument {key!r} ([CF-24])")
+        try:
+            v = _prepare_arg(key, case["args"][key], data)
+        except VectorError as exc:
+            raise VectorError(f"{data['_file']}: case {case['id']!r}: {exc} ([CF-24])") from None
         if flipped and key in fn.time_args:
             v = 1.0 - np.asarray(v, dtype=np.float64) if isinstance(v, np.ndarray) else 1.0 - float(v)
         if flipped and key in fn.vel_args:
@@ -177,16 +246,24 @@ def build_args(fn: Fn, case: dict, data: dict, flipped: bool) -> list:
 
 
 class CaseFailure(Exception):
-    """A case failed; the message is one line."""
+    """A case failed; the message is one line. ``ratio`` is the worst |got - want| / tolerance when a
+    number was out of tolerance, inf when none could be compared (exact-match mismatch, wrong shape,
+    type or kind of result, exception) ([CF-5], [CF-14])."""
+
+    def __init__(self, message: str, ratio: float = math.inf):
+        super().__init__(message)
+        self.ratio = float(ratio)
 
 
 def _to_np(adapter, value, what: str) -> np.ndarray:
     conv = getattr(adapter, "to_numpy", None) or np.asarray
     try:
         arr = np.asarray(conv(value))
-    except Exception as exc:
+    except BaseException as exc:
+        if _fatal(exc):
+            raise
         raise CaseFailure(f"{what}: cannot convert {type(value).__name__} to an array "
-                          f"({type(exc).__name__}: {_line(exc)})") from None
+                          f"({_describe(exc)})") from None
     if arr.dtype == object:
         raise CaseFailure(f"{what}: not a numeric array (got {type(value).__name__})")
     return arr
@@ -270,9 +347,15 @@ def compare(what: str, got: np.ndarray, want, tol: dict, integer: bool = False) 
         i = np.unravel_index(int(np.argmax(ratio)), ratio.shape) if ratio.ndim else ()
         idx = f"[{', '.join(map(str, i))}]" if i else ""
         times = "exact match required" if integer or not math.isfinite(worst) else f"{worst:.3g} x tolerance"
-        raise CaseFailure(f"{what}{idx}: got {g[i] if i else float(g)!r}, expected {w[i] if i else float(w)!r} "
-                          f"({times})")
+        raise CaseFailure(f"{what}{idx}: got {_number(g[i], integer)!r}, expected {_number(w[i], integer)!r} "
+                          f"({times})", worst)
     return worst
+
+
+def _number(x, integer: bool):
+    """A plain Python number for messages: an int for integer outputs, else a float (never np.float64(...))."""
+    v = float(x)
+    return int(v) if integer and v.is_integer() else v
 
 
 def check_outputs(fn: Fn, fname: str, got: dict, expected: dict, tol: dict) -> tuple[float, str]:
@@ -333,14 +416,18 @@ def run_case(adapter, fname: str, fn: Fn, case: dict, data: dict, flipped: bool)
             func(*args)
         except ValueError:
             return 0.0, ""
-        except Exception as exc:
-            raise CaseFailure(f"invalid input must raise ValueError, {fname} raised {type(exc).__name__}: "
-                              f"{_line(exc)}{_where(exc)}") from None
+        except BaseException as exc:  # SystemExit and the like fail the case too ([CF-18])
+            if _fatal(exc):
+                raise
+            raise CaseFailure(f"invalid input must raise ValueError, {fname} raised {_describe(exc)}"
+                              f"{_where(exc)}") from None
         raise CaseFailure(f"{fname} accepted invalid input (expected ValueError, [N-7])")
     try:
         out = func(*args)
-    except Exception as exc:
-        raise CaseFailure(f"{fname} raised {type(exc).__name__}: {_line(exc)}{_where(exc)}") from None
+    except BaseException as exc:
+        if _fatal(exc):
+            raise
+        raise CaseFailure(f"{fname} raised {_describe(exc)}{_where(exc)}") from None
     got = _normalize(fn, fname, out, adapter, flipped)
     return check_outputs(fn, fname, got, expected, case["tolerance"])
 
@@ -349,8 +436,9 @@ def run(impl, vectors_dir=None, only=None, files=None) -> RunResult:
     """Run every case against ``impl`` (an adapter spec string or an adapter object) ([CF-13]).
 
     ``only``: optional collection of function names to restrict the run;
-    ``files``: vectors already read by :func:`load_vectors` (saves re-reading them).
-    Raises AdapterError / VectorError with a one-line message when nothing can run.
+    ``files``: vectors already read (and checked, [CF-24]) by :func:`load_vectors`.
+    Raises AdapterError / VectorError with a one-line message when nothing can run; a case raising
+    anything but KeyboardInterrupt, SystemExit included, is a failed case ([CF-18]).
     """
     t0 = time.perf_counter()
     if isinstance(impl, str):
@@ -371,22 +459,24 @@ def run(impl, vectors_dir=None, only=None, files=None) -> RunResult:
             if only is not None and fname not in only:
                 continue
             cr = CaseResult(case.get("id", "?"), data["_file"], fname, list(case.get("requirements", [])), "pass")
-            if fname not in INTERFACE:
-                cr.status, cr.message = "fail", f"vector names unknown interface function {fname!r}"
-            elif fname not in supported:
+            if fname not in INTERFACE:  # load_vectors refuses such files; a hand-built list may hold one
+                raise VectorError(f"{data['_file']}: case {cr.id!r} names unknown interface function {fname!r}")
+            if fname not in supported:
                 cr.status, cr.message = "unsupported", f"adapter has no {fname}"
             elif sig_problems.get(fname):
-                cr.status, cr.message = "fail", sig_problems[fname]
+                cr.status, cr.message, cr.worst = "fail", sig_problems[fname], math.inf
             else:
                 c0 = time.perf_counter()
                 try:
                     cr.worst, cr.message = run_case(adapter, fname, INTERFACE[fname], case, data, flipped)
                 except CaseFailure as exc:
-                    cr.status, cr.message = "fail", str(exc)
-                except VectorError as exc:
-                    cr.status, cr.message = "fail", f"bad vector: {exc}"
-                except Exception as exc:  # a bug while mapping the adapter's output still gives one line
-                    cr.status, cr.message = "fail", f"{type(exc).__name__}: {_line(exc)}{_where(exc)}"
+                    cr.status, cr.message, cr.worst = "fail", str(exc), exc.ratio
+                except VectorError:
+                    raise  # a malformed case stops the run: status 2 ([CF-24])
+                except BaseException as exc:  # a bug while mapping the adapter's output still gives one line
+                    if _fatal(exc):
+                        raise
+                    cr.status, cr.message, cr.worst = "fail", f"{_describe(exc)}{_where(exc)}", math.inf
                 cr.seconds = time.perf_counter() - c0
             result.cases.append(cr)
     result.seconds = time.perf_counter() - t0
@@ -402,7 +492,7 @@ def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> s
     for rid, e in res.by_requirement().items():
         n = e["pass"] + e["fail"]
         extra = f", {e['unsupported']} unsupported" if e["unsupported"] else ""
-        worst = f"worst {e['worst']:.3g} x tol" if n and math.isfinite(e["worst"]) else "worst -"
+        worst = f"worst {e['worst']:.3g} x tol" if n else "worst -"
         lines.append(f"  {e['status']:<11s} {rid:<6s} {worst:<20s} {n:>5d} cases{extra}"
                      + (f" ({e['fail']} failed)" if e["fail"] else ""))
     uns: dict[str, int] = {}

@@ -75,11 +75,13 @@ def real_value(name: str, value, lo: float | None = None, hi: float | None = Non
 
 
 def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
-          lo: float | None = None, hi: float | None = None, dtype=jnp.float32) -> jax.Array:
+          lo: float | None = None, hi: float | None = None, dtype=jnp.float32,
+          allow_empty: bool = False) -> jax.Array:
     """A float array argument ([N-7], [N-8]).
 
     ``shape`` may contain ``None`` for a free dimension. The shape is checked
-    always; finiteness and the range ``[lo, hi]`` only when the value is concrete.
+    always (an axis of length 0 is rejected unless ``allow_empty``, [N-1]);
+    finiteness and the range ``[lo, hi]`` only when the value is concrete.
     """
     if not is_traced(value):
         if isinstance(value, (bool, np.bool_)) or (hasattr(value, "dtype") and value.dtype == bool):
@@ -103,6 +105,8 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
         if value.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, value.shape)):
             want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
             raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
+    if not allow_empty and 0 in value.shape:
+        raise ValueError(f"{name} must have at least one entry along every axis, got shape {list(value.shape)}")
     if not is_traced(value) and value.size:
         v = np.asarray(value)
         if not np.all(np.isfinite(v)):

@@ -32,11 +32,18 @@ def to_flipped_velocity(vel) -> jax.Array:
 
 
 def flipped_token_times(weights, t_flipped) -> jax.Array:
-    """t~'_j = (1 - w_j) t' ([V-3]); weights [..., H], t_flipped broadcastable to them."""
+    """t~'_j = (1 - w_j) t' ([V-3]); weights [..., H], t_flipped a scalar, [...] (per example) or [..., H].
+
+    Other shapes are rejected rather than broadcast ([N-7]).
+    """
     w = v.array("weights", weights, lo=0.0, hi=1.0)
     if w.ndim < 1:
         raise ValueError(f"weights must have shape [..., H], got {list(w.shape)}")
-    return (1.0 - w) * v.array("t_flipped", t_flipped, lo=0.0, hi=1.0)
+    tf = v.array("t_flipped", t_flipped, lo=0.0, hi=1.0)
+    if tf.ndim and tf.shape not in (w.shape, w.shape[:-1]):
+        raise ValueError(f"t_flipped must be a scalar or have shape {list(w.shape[:-1])} or {list(w.shape)}, "
+                         f"got {list(tf.shape)}")
+    return (1.0 - w) * (tf[..., None] if tf.ndim and tf.shape != w.shape else tf)
 
 
 def flipped_velocity_fn(flipped_fn):

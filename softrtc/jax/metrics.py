@@ -161,5 +161,5 @@ def bootstrap_interval(values, num_resamples: int = 10000, seed: int = 0, confid
 
 def is_high_delay(d) -> jax.Array:
     """d in {3, 4} ([M-7]); ``d`` may be traced or an integer array."""
-    d = v.int_array("d", d)
+    d = v.int_array("d", d, lo=0)
     return (d == HIGH_DELAYS[0]) | (d == HIGH_DELAYS[1])

@@ -45,10 +45,18 @@ def euler_times(num_steps: int) -> jax.Array:
 
 
 def blend(x, prior, weights) -> jax.Array:
-    """x~ = w Y + (1 - w) x token-wise ([S-3]); x, prior [..., H, A], weights broadcastable to [..., H]."""
+    """x~ = w Y + (1 - w) x token-wise ([S-3]); x, prior [..., H, A], weights [H] (shared) or [..., H].
+
+    Other weight shapes are rejected rather than broadcast ([N-7]).
+    """
     x = v.array("x", x)
+    if x.ndim < 2:
+        raise ValueError(f"x must have shape [..., H, A], got {list(x.shape)}")
     y = v.array("prior", prior, shape=x.shape)
-    w = v.array("weights", weights, lo=0.0, hi=1.0)[..., None]
+    w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.shape not in (x.shape[-2:-1], x.shape[:-1]):
+        raise ValueError(f"weights must have shape [{x.shape[-2]}] or {list(x.shape[:-1])}, got {list(w.shape)}")
+    w = w[..., None]
     return w * y + (1.0 - w) * x
 
 

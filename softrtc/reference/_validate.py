@@ -47,10 +47,11 @@ def check_choice(name: str, value, choices) -> str:
 
 
 def check_array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
-                lo: float | None = None, hi: float | None = None) -> np.ndarray:
+                lo: float | None = None, hi: float | None = None, allow_empty: bool = False) -> np.ndarray:
     """Return ``value`` as a finite float64 array of the given shape ([N-7], [N-8]).
 
-    ``shape`` may contain ``None`` for a free dimension.
+    ``shape`` may contain ``None`` for a free dimension. An axis of length 0 is
+    rejected unless ``allow_empty`` ([N-1]: H >= 1, A >= 1).
     """
     try:
         raw = np.asarray(value)
@@ -66,6 +67,8 @@ def check_array(name: str, value, shape: tuple | None = None, ndim: int | None =
         if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
             want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
             raise ValueError(f"{name} must have shape {want}, got {list(arr.shape)}")
+    if not allow_empty and 0 in arr.shape:
+        raise ValueError(f"{name} must have at least one entry along every axis, got shape {list(arr.shape)}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
     if lo is not None and arr.size and arr.min() < lo:

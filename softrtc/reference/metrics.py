@@ -90,9 +90,9 @@ def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -
     """Percentile interval of resampled means ([M-5]), numpy's 'linear' quantiles."""
     v = check_array("values", values, ndim=1)
     idx = np.asarray(indices)
-    if idx.ndim != 2 or idx.shape[1] != v.size or not np.issubdtype(idx.dtype, np.integer) \
+    if idx.ndim != 2 or idx.shape[0] < 1 or idx.shape[1] != v.size or not np.issubdtype(idx.dtype, np.integer) \
             or idx.min() < 0 or idx.max() >= v.size:
-        raise ValueError(f"indices must be an integer array [B, {v.size}] with entries in [0, {v.size - 1}]")
+        raise ValueError(f"indices must be an integer array [B, {v.size}], B >= 1, with entries in [0, {v.size - 1}]")
     c = check_real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
     means = v[idx].mean(axis=1)
     lo, hi = np.quantile(means, [(1.0 - c) / 2.0, 1.0 - (1.0 - c) / 2.0])
