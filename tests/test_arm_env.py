@@ -435,3 +435,104 @@ def test_demo_loader_rejects_a_npy_file(tmp_path):
         load_demos(p)
     with pytest.raises(ValueError, match="existing .npz"):
         load_demos(tmp_path / "none.npz")
+
+
+def test_config_geometry_is_checked_at_construction():
+    """A-12, A-5, A-2: a scene that cannot be built fails in ArmConfig, naming the field, not later at reset."""
+    cases = [(dict(home_ee=(5.0, 5.0)), r"^config\.home_ee .*reachable"),
+             (dict(home_ee=(0.0, -0.02)), r"^config\.home_ee must lie above the table"),  # reachable, under the table
+             (dict(object_x_range=(-0.1, 0.1)), r"^config\.object_x_range is too narrow"),
+             (dict(object_x_range=(-0.74, 0.18)), r"^config\.object_x_range must keep every part on the table"),
+             (dict(box_centers=(-0.70, 0.32)), r"^config\.box_centers\[0\] .* off the table"),
+             (dict(box_centers=(-0.34, 0.70)), r"^config\.box_centers\[1\] .* off the table"),
+             (dict(box_centers=(0.20, 0.32)), r"^config\.box_centers .* overlap")]
+    for fields, msg in cases:
+        with pytest.raises(ValueError, match=msg):
+            ArmConfig(**fields)
+    # Without the check, home_ee below the table is a valid IK target: the rule is the config's, not IK's.
+    assert inverse_kinematics(np.array([0.0, -0.02]))[1] <= 0
+    # The narrowest range that admits a placement: widest parts at the ends, three gaps ([A-5]).
+    w = sorted(s[0] for s in ArmConfig().object_sizes)
+    need = sum(w) - (w[-1] + w[-2]) / 2 + 3 * ArmConfig().object_min_gap
+    ArmConfig(object_x_range=(-need / 2 - 1e-9, need / 2 + 1e-9))
+    with pytest.raises(ValueError, match="object_x_range"):
+        ArmConfig(object_x_range=(-need / 2 + 1e-6, need / 2 - 1e-6))
+
+
+def test_part_placement_draw_sequence_and_give_up():
+    """A-5, A-6: box offsets, then whole redraws of all four part centres; reset gives up after 10,000 attempts."""
+    cfg = ArmConfig()
+    env = ArmSortEnv(cfg)
+    widths = np.array([s[0] for s in cfg.object_sizes])
+    redraws = 0
+    for seed in range(30):
+        obs = env.reset(seed)
+        # The spec's procedure, written out: a port following it gets the same scene bitwise.
+        rng = np.random.default_rng(seed)
+        boxes = np.array(cfg.box_centers) + rng.uniform(-cfg.box_center_jitter, cfg.box_center_jitter, size=2)
+        for attempt in range(10_000):
+            xs = rng.uniform(*cfg.object_x_range, size=4)
+            if all(abs(xs[i] - xs[j]) >= (widths[i] + widths[j]) / 2 + cfg.object_min_gap
+                   for i in range(4) for j in range(i + 1, 4)):
+                break
+        redraws += attempt
+        np.testing.assert_array_equal(obs[10:30].reshape(4, 5)[:, 0], xs)
+        np.testing.assert_array_equal(obs[[30, 32]], boxes)
+    assert redraws > 0  # the seeds exercise rejected attempts
+    # A range that admits a placement only at its exact edges: the sampler gives up, naming the field.
+    w = sorted(widths)
+    need = sum(w) - (w[-1] + w[-2]) / 2 + 3 * cfg.object_min_gap
+    tight = ArmSortEnv(dataclasses.replace(cfg, object_x_range=(-need / 2, need / 2)))
+    with pytest.raises(ValueError, match=r"^config\.object_x_range .*10000 placements"):
+        tight.reset(0)
+
+
+def _part_below_tip(env, k, gap):
+    """Put part k (upright, at rest) under the gripper tip with its top `gap` below the tip; return the distance."""
+    sc = env._scene
+    tip = env._ee_position()
+    body, shape = sc.objects[k]
+    h = env.config.object_sizes[k][1]
+    body.position = (float(tip[0]), float(tip[1]) - gap - h / 2)
+    body.angle = 0.0
+    sc.space.reindex_shapes_for_body(body)
+    return shape.point_query(tuple(tip)).distance
+
+
+def test_grasp_reach_is_inclusive_and_ties_go_to_the_lowest_index():
+    """A-9: a part at exactly grasp_radius is within reach; equally near parts go to the lowest index."""
+    env = ArmSortEnv()
+    env.reset(0)
+    d = _part_below_tip(env, 0, 0.012)
+    assert 0.0 < d < 0.015
+    env.config = dataclasses.replace(env.config, grasp_radius=d)  # the part at exactly grasp_radius
+    _, info = env.step(np.concatenate([env.joint_positions(), [1.0]]))
+    assert info["holding"] == 0
+    env.reset(0)
+    env.config = dataclasses.replace(env.config, grasp_radius=np.nextafter(d, 0.0))  # just outside reach
+    assert _part_below_tip(env, 0, 0.012) == d
+    _, info = env.step(np.concatenate([env.joint_positions(), [1.0]]))
+    assert info["holding"] == -1
+    # blue1 and blue0 at the same pose: exactly equal distances, the lower index wins.
+    env = ArmSortEnv()
+    env.reset(0)
+    d1 = _part_below_tip(env, 1, 0.005)
+    assert _part_below_tip(env, 0, 0.005) == d1
+    _, info = env.step(np.concatenate([env.joint_positions(), [1.0]]))
+    assert info["holding"] == 0
+
+
+def test_kinematics_and_expert_reject_non_numbers():
+    """A-12, A-2, A-13: booleans and strings are not coordinates, angles or observations."""
+    for bad in ([True, False], ["0.1", "0.1"], np.array([1, 0], bool)):
+        with pytest.raises(ValueError, match="^ee_xy must be"):
+            inverse_kinematics(bad)
+    for bad in (True, np.bool_(False), "0", None, float("nan"), [0.0]):
+        with pytest.raises(ValueError, match="^tool_angle must be"):
+            inverse_kinematics(np.array([0.0, 0.1]), tool_angle=bad)
+    # NumPy scalars are numbers.
+    q = inverse_kinematics(np.array([0.0, 0.1]), tool_angle=np.float32(-math.pi / 2))
+    np.testing.assert_allclose(forward_kinematics(q), [0.0, 0.1], atol=1e-6)
+    for bad in (np.zeros(OBS_DIM, bool), np.array(["0"] * OBS_DIM)):
+        with pytest.raises(ValueError, match="^obs must be"):
+            ScriptedExpert().act(bad)

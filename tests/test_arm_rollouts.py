@@ -266,3 +266,180 @@ def test_study_metrics_table_and_plot(tmp_path):
     assert (tmp_path / "t.png").stat().st_size > 1000 and png.endswith(".png")
     with pytest.raises(ValueError, match="per_trial"):
         summarize([])
+
+
+def _spec_train_config(method, steps, learning_rate):
+    """[A-20] written out from spec/10-arm.md (not from the code): the chapter-T config of an arm objective."""
+    return {"method": method,
+            "window": {"rule": {"kind": "delay_scaled", "lam": 2.0, "h_max": 5}, "schedule": "linear",
+                       "parametrization": "rtc", "overflow": "clip"},
+            "execute_horizon": 5, "delay_dist": "uniform", "d_min": 0, "d_max": 5, "delay_decay": 1.0,
+            "batch_size": 128, "learning_rate": learning_rate, "weight_decay": 1e-4, "adam_b1": 0.9,
+            "adam_b2": 0.999, "adam_eps": 1e-8, "grad_clip_norm": 1.0, "warmup_steps": min(200, steps // 10),
+            "decay_steps": steps, "final_lr_ratio": 0.05}
+
+
+def test_arm_train_config_and_shipped_checkpoints_follow_the_spec():
+    """A-20, A-21, T-1, T-6, W-7: the whole training config of each objective, and what each shipped file stores."""
+    from softrtc.arm.policies import arm_train_config, default_checkpoint_dir
+    from softrtc.jax.checkpoint import read_checkpoint
+
+    objective = {"naive": "none", "train_hard": "hard", "train_soft": "soft"}
+    for m, tm in objective.items():
+        for steps, lr in ((4000, 1e-3), (800, 1e-3 / 3), (50, 1e-3)):
+            assert arm_train_config(m, ArmPolicyConfig(), steps, 128, lr).to_dict() == _spec_train_config(tm, steps, lr)
+    # The defaults are the command's: batch 128 ([A-20]).
+    assert arm_train_config("naive", ArmPolicyConfig(), 4000).to_dict() == _spec_train_config("none", 4000, 1e-3)
+    # [A-21]: base 4000 steps at 1e-3, fine-tunes 800 steps at 1e-3 / 3; 400 episodes, seed 0, batch 128.
+    shipped = {"base.npz": ("naive", 4000, 1e-3), "train_hard.npz": ("train_hard", 800, 1e-3 / 3),
+               "train_soft.npz": ("train_soft", 800, 1e-3 / 3)}
+    for name, (m, steps, lr) in shipped.items():
+        _, header = read_checkpoint(default_checkpoint_dir() / name)
+        arm = header["metadata"]["arm"]
+        assert arm["train_config"] == _spec_train_config(objective[m], steps, lr), name
+        meta = arm["meta"]
+        assert (meta["episodes"], meta["seed"], meta["noise_std"], meta["steps"], meta["finetune_steps"],
+                meta["batch_size"], meta["learning_rate"]) == (400, 0, 0.03, 4000, 800, 128, 1e-3), name
+
+
+def test_train_arm_policies_small_run(tmp_path):
+    """A-20, A-18, T-8, T-9: demos, base and both fine-tunes end to end; only the checkpoints are written to out."""
+    from softrtc.arm.policies import arm_train_config, load_arm_checkpoint, train_arm_policies
+
+    (tmp_path / "demos.npz").write_bytes(b"a file of the user's")
+    paths = train_arm_policies(tmp_path, episodes=1, steps=2, finetune_steps=2, seed=5, config=CFG, batch_size=8,
+                               verbose=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["base.npz", "demos.npz", "train_hard.npz",
+                                                          "train_soft.npz"]
+    assert (tmp_path / "demos.npz").read_bytes() == b"a file of the user's"
+    assert set(paths) == {"naive", "train_hard", "train_soft"}
+    for m, lr in (("naive", 1e-3), ("train_hard", 1e-3 / 3), ("train_soft", 1e-3 / 3)):
+        pol = load_arm_checkpoint(paths[m])
+        assert pol.trained_as == m and pol.config == CFG
+        assert pol.train_config == arm_train_config(m, CFG, 2, 8, lr).to_dict()
+        assert pol.meta["episodes"] == 1 and pol.meta["seed"] == 5 and pol.meta["steps"] == 2
+        assert (pol.meta.get("finetuned_from") == "base") == (m != "naive")
+    # The base is trained from nnx.Rngs(seed) and key(seed); the fine-tunes start from it and differ from it.
+    import flax.nnx as nnx
+
+    leaves = {m: jax.tree_util.tree_leaves(nnx.state(load_arm_checkpoint(p).model)) for m, p in paths.items()}
+    assert any(not np.array_equal(a, b) for a, b in zip(leaves["naive"], leaves["train_hard"]))
+    for bad, msg in ((dict(batch_size=0), "batch_size"), (dict(out_dir=3), "out_dir"), (dict(episodes=0), "episodes"),
+                     (dict(demos=tmp_path / "missing.npz"), "demos")):
+        kw = {"out_dir": tmp_path, "episodes": 1, "steps": 1, "config": CFG, "verbose": False, **bad}
+        with pytest.raises(ValueError, match=f"^{msg}"):
+            train_arm_policies(**kw)
+
+
+def test_run_study_seeds_keys_and_csv_columns(tmp_path, monkeypatch):
+    """A-25, A-24, R-2, N-9: trial i of every method uses env seed seed0 + i and key fold_in(key(key_seed), i)."""
+    import csv
+
+    from softrtc.arm import study
+    from softrtc.arm.env import ArmSortEnv
+    from softrtc.arm.policies import save_arm_checkpoint
+
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    p = policy("naive")
+    for name, m in (("base.npz", "naive"), ("train_hard.npz", "train_hard"), ("train_soft.npz", "train_soft")):
+        save_arm_checkpoint(ckpt / name, p.model, p.normalizer, CFG, m)
+    calls = []
+    real = study.run_realtime_episode
+
+    def recording(pol, env_seed, key, cfg, max_steps=None):
+        rec = real(pol, env_seed, key, cfg, max_steps=max_steps)
+        calls.append((pol.method, env_seed, key, cfg, max_steps, rec))
+        return rec
+
+    monkeypatch.setattr(study, "run_realtime_episode", recording)
+    out = study.run_study(ckpt, trials=2, methods=("naive", "train_soft"), added_latency_s=0.0, seed0=123,
+                          key_seed=7, out_dir=tmp_path / "out", max_steps=12, plot=False, verbose=False)
+    assert [(c[0], c[1]) for c in calls] == [("naive", 123), ("naive", 124), ("train_soft", 123), ("train_soft", 124)]
+    for method, env_seed, key, cfg, max_steps, rec in calls:
+        i = env_seed - 123
+        want = jax.random.fold_in(jax.random.key(7), i)
+        np.testing.assert_array_equal(jax.random.key_data(key), jax.random.key_data(want))
+        assert cfg.added_latency_s == 0.0 and max_steps == 12 and rec.step_limit == 12
+        # Request 0 is made before the clock starts ([R-2]): its chunk is a pure function of seed and key.
+        obs = ArmSortEnv().reset(env_seed)
+        np.testing.assert_array_equal(rec.chunks[0], p.generate(obs, None, 0, jax.random.fold_in(want, 0)))
+    with open(out["paths"]["results"]) as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["method", "trial", "env_seed", "success", "completed", "completion", "duration_s",
+                             "throughput", "D1", "D2", "D3", "boundary", "latency_ms", "hold_ticks", "fault",
+                             "mean_realized_delay"]
+    assert [(r["method"], r["trial"], r["env_seed"]) for r in rows] == [
+        ("naive", "0", "123"), ("naive", "1", "124"), ("train_soft", "0", "123"), ("train_soft", "1", "124")]
+    with open(out["paths"]["summary"]) as f:
+        summary = list(csv.DictReader(f))
+    stats = [x for k in ("completion", "throughput", "D1", "D2", "D3", "boundary", "latency_ms", "hold_ticks")
+             for x in (k, k + "_se")]
+    assert list(summary[0]) == ["method", "trials", "successes", "objects", "objects_total", *stats, "faults",
+                                "period_p50_ms", "period_p99_ms"]
+    assert [r["method"] for r in summary] == ["naive", "train_soft"] and summary[0]["trials"] == "2"
+    assert set(out["paths"]) == {"results", "summary"}
+
+
+def test_throughput_is_over_the_full_trial():
+    """A-24: a solved episode counts up to its success time; any other trial over its max_steps ticks."""
+    import dataclasses
+
+    rec = rollout("train_hard", 3)
+    assert rec.step_limit == STEPS and rec.steps == STEPS
+    cut = dataclasses.replace(rec, steps=10, actions=rec.actions[:10], chunk_index=rec.chunk_index[:10],
+                              num_completed=1, step_limit=1000)
+    m = episode_metrics(cut)
+    assert m["throughput"] == pytest.approx(1 / (1000 * 0.02 / 60.0)) and m["duration_s"] == pytest.approx(0.2)
+    solved = dataclasses.replace(rec, num_completed=4, success=True, success_step=STEPS, step_limit=1000)
+    assert episode_metrics(solved)["throughput"] == pytest.approx(4 / (STEPS * 0.02 / 60.0))
+    with pytest.raises(ValueError, match="step_limit"):
+        episode_metrics(dataclasses.replace(rec, step_limit=STEPS - 1))
+
+
+def test_policy_window_and_chunk_dataset_inputs_are_checked():
+    """A-17, A-16, W-7, N-7: a window that is not a JAX SoftWindow and a demo layout that is not [A-16]'s raise."""
+    from softrtc.arm.policies import ArmPolicy, chunk_dataset
+    from softrtc.reference.weights import SoftWindow as RefSoftWindow
+
+    for bad in ("soft", RefSoftWindow(), 2.0):
+        with pytest.raises(ValueError, match="^window must be a softrtc.jax.weights.SoftWindow"):
+            untrained_policy(0, "train_soft", CFG, window=bad)
+        p = policy("naive")
+        with pytest.raises(ValueError, match="^window must be"):
+            ArmPolicy(p.model, p.normalizer, CFG, "train_soft", window=bad)
+    good = {"obs": np.zeros((5, 34), np.float32), "action": np.zeros((5, 4), np.float32),
+            "episode_start": np.array([0, 3]), "episode_length": np.array([3, 2])}
+    assert chunk_dataset(good, 4)["chunks"].shape == (5, 4, 4)
+    cases = [(dict(episode_start=np.array([0, 4])), r"data\['episode_start'\]"),
+             (dict(episode_start=np.array([0, 9])), r"data\['episode_start'\]"),
+             (dict(episode_length=np.array([3, 3])), r"data\['episode_start'\]"),
+             (dict(episode_length=np.array([5, 0]), episode_start=np.array([0, 5])), r"data\['episode_length'\]"),
+             (dict(episode_length=np.array([3])), r"data\['episode_length'\]"),
+             (dict(episode_start=np.array([0.0, 3.0])), r"data\['episode_start'\]"),
+             (dict(episode_start=np.array([[0, 3]])), r"data\['episode_start'\]"),
+             (dict(obs=np.zeros((5, 33))), r"data\['obs'\]"),
+             (dict(obs=np.zeros((4, 34))), r"data\['obs'\]"),
+             (dict(action=np.full((5, 4), np.nan)), r"data\['action'\]"),
+             (dict(action=np.zeros((5, 4), bool)), r"data\['action'\]")]
+    for fields, msg in cases:
+        with pytest.raises(ValueError, match="^" + msg):
+            chunk_dataset({**good, **fields}, 4)
+
+
+def test_arm_train_command_never_defaults_to_the_shipped_checkpoints(tmp_path, monkeypatch):
+    """A-20, A-21: `softrtc arm train` writes to ./arm_checkpoints unless --out names another folder."""
+    from pathlib import Path
+
+    from softrtc.arm import policies
+    from softrtc.cli import build_parser
+
+    monkeypatch.chdir(tmp_path)
+    args = build_parser().parse_args(["arm", "train"])
+    assert args.out == "arm_checkpoints"
+    assert Path(args.out).resolve() != policies.default_checkpoint_dir().resolve()
+    seen = {}
+    monkeypatch.setattr(policies, "train_arm_policies", lambda out, **kw: seen.update(out=out, **kw) or {})
+    assert args.func(args) == 0
+    assert seen == {"out": "arm_checkpoints", "episodes": 400, "steps": 4000, "finetune_steps": 800, "seed": 0}
+    assert build_parser().parse_args(["arm", "train", "--out", str(tmp_path / "x")]).out == str(tmp_path / "x")

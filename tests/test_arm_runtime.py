@@ -89,7 +89,9 @@ def test_runtime_late_chunk_is_rejected_and_arm_holds():
     assert rec.fault is None and rec.steps == 70
     kinds = [e[1] for e in rec.events]
     assert "late_reject" in kinds and "restart_request" in kinds and "hold_start" in kinds
-    assert not rec.accepted[3] and rec.realized_delays[3] == -2
+    # R-9: a rejected late chunk carries -2 in both its realized and its executed-prefix delay.
+    assert not rec.accepted[3] and rec.realized_delays[3] == -2 and rec.exec_delays[3] == -2
+    assert set(np.nonzero(rec.exec_delays == -2)[0]) == set(np.nonzero(~rec.accepted & (rec.realized_delays == -2))[0])
     assert not np.any(rec.chunk_index == 3)  # never executed
     assert rec.hold.sum() >= 1
     _check_aligned(rec, 10, 5)
@@ -111,6 +113,13 @@ def test_runtime_permanent_stall_ends_cleanly():
     assert rec.steps < 200 and rec.hold[-10:].all()
     assert "worker_not_joined" not in [e[1] for e in rec.events]
     _check_aligned(rec, 10, 5)
+    # A-24: a stalled trial's throughput is over the full trial of max_steps ticks, not the ticks it ran.
+    import dataclasses
+
+    assert rec.step_limit == 200
+    m = episode_metrics(dataclasses.replace(rec, num_completed=2))
+    assert m["throughput"] == pytest.approx(2 / (200 * 0.02 / 60.0))
+    assert m["duration_s"] == pytest.approx(rec.steps * 0.02)
 
 
 def test_runtime_worker_crash_ends_cleanly():
@@ -162,3 +171,63 @@ def test_runtime_helpers_validate_inputs():
         with pytest.raises(ValueError, match="^periods_s"):
             jitter_summary(bad)
     assert predict_delay([2, 3], 4) == 3 and jitter_summary([0.02, 0.02])["p50_ms"] == pytest.approx(20.0)
+
+
+def test_runtime_ticks_on_an_absolute_schedule_after_a_slow_tick(monkeypatch):
+    """R-1: one slow tick does not shift later ticks; tick k starts at T0 + k dt, none is skipped."""
+    import time
+
+    from softrtc.arm import runtime as R
+
+    slow_tick, slow_s, dt = 10, 0.1, 0.02
+
+    class SlowTickEnv(R.ArmSortEnv):
+        def step(self, action):
+            out = super().step(action)
+            if self.t == slow_tick + 1:  # the step of tick `slow_tick`
+                time.sleep(slow_s)
+            return out
+
+    monkeypatch.setattr(R, "ArmSortEnv", SlowTickEnv)
+    rec = run_realtime_episode(RampPolicy(), 3, jax.random.key(0), RuntimeConfig(added_latency_s=0.0), max_steps=50)
+    assert rec.steps == 50 and rec.periods_s.size == 49  # no tick skipped
+    starts = np.concatenate([[0.0], np.cumsum(rec.periods_s)])  # tick start times relative to tick 0 (= T0)
+    # The slow tick is late by 5 ticks: the next tick starts at once, after the slow one.
+    assert rec.periods_s[slow_tick] >= slow_s
+    # Catch-up: ticks whose start time passed run back to back; from tick 16 on the schedule holds again.
+    offsets = starts[20:] - np.arange(20, 50) * dt
+    assert np.median(offsets) < 0.25 * dt, offsets
+    # Every tick starts no earlier than its scheduled time.
+    assert np.all(starts - np.arange(50) * dt > -1e-3)
+
+
+def test_added_latency_results_are_validated():
+    """R-8, N-7: a per-request latency that is not a finite number of seconds in [0, 10] is a ValueError."""
+    import threading
+
+    for bad in (-1.0, float("nan"), float("inf"), "0.01", True, None, 11.0):
+        # Request 0 is fine; the bad value comes with request 1, mid-episode.
+        lat = lambda c, bad=bad: 0.0 if c == 0 else bad  # noqa: E731
+        with pytest.raises(ValueError, match=r"^added_latency\(1\) must be a finite number in \[0.0, 10.0\]"):
+            run_realtime_episode(RampPolicy(), 0, jax.random.key(0), RuntimeConfig(), max_steps=30, added_latency=lat)
+        # The worker was stopped before the error left the runtime.
+        assert not any(t.name == "softrtc-arm-inference" and t.is_alive() for t in threading.enumerate())
+    with pytest.raises(ValueError, match="^added_latency must be None or a callable"):
+        run_realtime_episode(RampPolicy(), 0, jax.random.key(0), added_latency=0.1)
+    # NumPy numbers are numbers.
+    rec = run_realtime_episode(RampPolicy(), 0, jax.random.key(0), RuntimeConfig(), max_steps=12,
+                               added_latency=lambda c: np.float32(0.0))
+    assert rec.fault is None and rec.steps == 12
+
+
+def test_runtime_config_takes_numpy_scalars_but_not_booleans():
+    """R-3, R-6, R-8, N-7: NumPy integers and floats are accepted and stored as Python numbers; booleans are not."""
+    cfg = RuntimeConfig(added_latency_s=np.float32(0.25), latency_window=np.int64(3), max_hold_ticks=np.int32(7),
+                        join_timeout_s=np.int64(1))
+    assert (cfg.added_latency_s, cfg.latency_window, cfg.max_hold_ticks, cfg.join_timeout_s) == (0.25, 3, 7, 1.0)
+    assert type(cfg.latency_window) is int and type(cfg.added_latency_s) is float
+    for field, bad in (("latency_window", np.bool_(True)), ("latency_window", True), ("max_hold_ticks", 2.0),
+                       ("added_latency_s", np.bool_(False)), ("added_latency_s", "0.1"),
+                       ("join_timeout_s", float("nan")), ("latency_window", np.int64(0))):
+        with pytest.raises(ValueError, match=f"^{field} must be"):
+            RuntimeConfig(**{field: bad})

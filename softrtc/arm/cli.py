@@ -10,6 +10,9 @@ __all__ = ["add_subparsers", "demo"]
 
 
 SEED_MAX = 2**31 - 1
+# [A-20] `arm train` writes to a folder of the current directory unless told otherwise: a trial run never
+# replaces the shipped checkpoints of the installed package.
+DEFAULT_TRAIN_OUT = "arm_checkpoints"
 
 
 def add_subparsers(subparsers) -> None:
@@ -19,7 +22,9 @@ def add_subparsers(subparsers) -> None:
     arm.set_defaults(func=group_help(arm))
 
     tr = sub.add_parser("train", help="demos, base BC flow policy, Train Hard / Soft RTC fine-tunes ([A-20])")
-    tr.add_argument("--out", type=output_dir(), default=None, help="checkpoint folder (default: softrtc/arm/checkpoints)")
+    tr.add_argument("--out", type=output_dir(), default=DEFAULT_TRAIN_OUT,
+                    help=f"checkpoint folder (default ./{DEFAULT_TRAIN_OUT}; the shipped checkpoints in "
+                         "softrtc/arm/checkpoints are replaced only when named here)")
     tr.add_argument("--episodes", type=int_in("value", 1, 100000), default=400,
                     help="DART demo episodes, 1 .. 100000 (default 400)")
     tr.add_argument("--steps", type=int_in("value", 1, 10**7), default=4000, help="base training steps (default 4000)")
@@ -50,10 +55,9 @@ def add_subparsers(subparsers) -> None:
 
 
 def _train(args) -> int:
-    from .policies import default_checkpoint_dir, train_arm_policies
+    from .policies import train_arm_policies
 
-    out = args.out or str(default_checkpoint_dir())
-    paths = train_arm_policies(out, episodes=args.episodes, steps=args.steps, finetune_steps=args.finetune_steps,
+    paths = train_arm_policies(args.out, episodes=args.episodes, steps=args.steps, finetune_steps=args.finetune_steps,
                                seed=args.seed)
     for m, p in paths.items():
         print(f"{m}: {p}")

@@ -38,7 +38,7 @@ def rollout_noisy_episode(env: ArmSortEnv, expert: ScriptedExpert, env_seed, rng
     constant offset drawn from ``N(0, perturb_std^2)``; a perturbation starts
     with probability ``perturb_prob`` on a step without one and lasts
     ``perturb_steps`` steps. The noisy targets are clipped to the joint limits
-    (the generator's rule, [A-16]); the gripper command is never noised.
+    (the generator's rule, [A-15]); the gripper command is never noised.
     """
     if not isinstance(env, ArmSortEnv):
         raise ValueError("env must be an ArmSortEnv")

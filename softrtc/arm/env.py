@@ -39,6 +39,8 @@ OBJECT_NAMES = ("blue0", "blue1", "silver0", "silver1")
 # Box index per object: 0 = blue box, 1 = gray box.
 OBJECT_TARGET_BOX = (0, 0, 1, 1)
 _OBJ_FIELDS = 5  # x, y, angle, held, placed
+# [A-5] attempts of the part placement before reset gives up.
+PLACEMENT_ATTEMPTS = 10_000
 
 # [A-7] observation layout (half-open index ranges into the flat vector).
 OBS_SLICES = {
@@ -167,6 +169,42 @@ def _validate_config(cfg: ArmConfig) -> None:
     _reals("box_centers", cfg.box_centers, 2)
     _reals("box_inner_widths", cfg.box_inner_widths, 2, 0.0, strict=True)
     _reals("home_ee", cfg.home_ee, 2)
+    _validate_layout(cfg)
+
+
+def _validate_layout(cfg: ArmConfig) -> None:
+    """Cross-field geometry of [A-5] and [A-12]: every check names the field it rejects."""
+    half = cfg.table_half_width
+    # Parts rest on the table: every centre in object_x_range keeps the widest part on it.
+    lo, hi = cfg.object_x_range
+    widths = sorted(float(s[0]) for s in cfg.object_sizes)
+    if lo - widths[-1] / 2 < -half or hi + widths[-1] / 2 > half:
+        raise ValueError(f"config.object_x_range must keep every part on the table: low - {widths[-1] / 2!r} >= "
+                         f"{-half!r} and high + {widths[-1] / 2!r} <= {half!r}, got {cfg.object_x_range!r}")
+    # Some placement meets object_min_gap: the two widest parts at the ends gives the shortest row of centres.
+    need = sum(widths) - (widths[-1] + widths[-2]) / 2 + (NUM_OBJECTS - 1) * cfg.object_min_gap
+    if hi - lo < need:
+        raise ValueError(f"config.object_x_range is too narrow: high - low must be >= {need!r} for the parts of "
+                         f"config.object_sizes with config.object_min_gap, got {cfg.object_x_range!r}")
+    # Boxes stand on the table for every jitter draw, and the two never overlap.
+    spans = []
+    for i, (c, inner) in enumerate(zip(cfg.box_centers, cfg.box_inner_widths)):
+        reach = inner / 2 + cfg.box_wall_thickness + cfg.box_center_jitter
+        if c - reach < -half or c + reach > half:
+            raise ValueError(f"config.box_centers[{i}] = {c!r} puts box {i} off the table: |centre| + inner width / 2 "
+                             f"+ wall thickness + jitter must be <= table_half_width = {half!r}")
+        spans.append((c - reach, c + reach))
+    if spans[0][0] < spans[1][1] and spans[1][0] < spans[0][1]:
+        raise ValueError(f"config.box_centers {cfg.box_centers!r} make the two boxes overlap (walls and jitter "
+                         f"included)")
+    # The arm starts at rest with its tip above the table, at a reachable point ([A-2]).
+    if not cfg.home_ee[1] > 0.0:
+        raise ValueError(f"config.home_ee must lie above the table top (y > 0), got {cfg.home_ee!r}")
+    try:
+        _ik(np.asarray(cfg.home_ee, np.float64), cfg, -math.pi / 2)
+    except ValueError:
+        raise ValueError(f"config.home_ee {cfg.home_ee!r} is outside the reachable workspace of the arm "
+                         f"([A-2]: tip with link 3 pointing down)") from None
 
 
 def _config(config) -> ArmConfig:
@@ -207,11 +245,19 @@ def inverse_kinematics(ee_xy, config: ArmConfig | None = None, tool_angle: float
     ValueError.
     """
     cfg = _config(config)
+    if np.asarray(ee_xy).dtype.kind not in "iuf":  # booleans and strings are not coordinates
+        raise ValueError(f"ee_xy must be a finite real array of shape (2,), got dtype {np.asarray(ee_xy).dtype}")
     p = np.asarray(ee_xy, dtype=np.float64)
     if p.shape != (2,) or not np.all(np.isfinite(p)):
         raise ValueError(f"ee_xy must be a finite array of shape (2,), got {ee_xy!r}")
-    if not math.isfinite(tool_angle):
-        raise ValueError(f"tool_angle must be finite, got {tool_angle!r}")
+    if isinstance(tool_angle, (bool, np.bool_)) or not isinstance(tool_angle, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(tool_angle):
+        raise ValueError(f"tool_angle must be a finite real number (radians), got {tool_angle!r}")
+    return _ik(p, cfg, float(tool_angle))
+
+
+def _ik(p: np.ndarray, cfg: ArmConfig, tool_angle: float) -> np.ndarray:
+    """:func:`inverse_kinematics` on checked arguments ([A-2])."""
     l1, l2, l3 = cfg.link_lengths
     wx = p[0] - l3 * math.cos(tool_angle) - cfg.base[0]
     wy = p[1] - l3 * math.sin(tool_angle) - cfg.base[1]
@@ -352,8 +398,9 @@ class ArmSortEnv:
         cfg = self.config
         lo, hi = cfg.object_x_range
         widths = np.array([s[0] for s in cfg.object_sizes])
-        # Rejection sampling; the range is wide enough that this ends fast.
-        for _ in range(10_000):
+        # [A-5] rejection sampling: each attempt redraws all four centres in one call; the configuration check
+        # guarantees a valid placement exists, and a range so tight that 10,000 attempts miss it raises.
+        for _ in range(PLACEMENT_ATTEMPTS):
             xs = rng.uniform(lo, hi, size=NUM_OBJECTS)
             ok = True
             for i in range(NUM_OBJECTS):
@@ -362,7 +409,8 @@ class ArmSortEnv:
                         ok = False
             if ok:
                 return xs
-        raise ValueError("config.object_x_range is too narrow for the objects and config.object_min_gap")
+        raise ValueError(f"config.object_x_range {cfg.object_x_range!r} is too narrow: {PLACEMENT_ATTEMPTS} "
+                         f"placements of the parts with config.object_min_gap failed for this seed ([A-5])")
 
     # ------------------------------------------------------------------- step
     def step(self, action):
@@ -450,7 +498,7 @@ class ArmSortEnv:
         best, best_d = -1, math.inf
         for i, (_, shape) in enumerate(sc.objects):
             d = shape.point_query(tip).distance
-            # Strict < keeps the lowest index on ties.
+            # [A-9] reach is inclusive (<=); strict < keeps the lowest index on ties.
             if d <= self.config.grasp_radius and d < best_d:
                 best, best_d = i, d
         if best < 0:

@@ -39,8 +39,9 @@ class EpisodeRecord:
     Per chunk ``c``: ``chunks[c]``, ``request_step[c]``, ``delays[c]`` (the ``d``
     passed to the sampler), ``exec_delays[c]`` (ticks executed from the previous
     chunk), ``realized_delays[c]``, ``latencies_s[c]`` (runtime only; the
-    simulated executor reports NaN latency). Runtime-only per-tick fields are
-    ``periods_s`` and ``hold``.
+    simulated executor reports NaN latency). ``step_limit`` is the number of
+    ticks the trial was run for at most (``max_steps``), whatever ended it
+    ([A-24]). Runtime-only per-tick fields are ``periods_s`` and ``hold``.
     """
 
     method: str
@@ -60,6 +61,7 @@ class EpisodeRecord:
     success_step: int | None
     steps: int
     dt: float
+    step_limit: int
     hold: np.ndarray | None = None
     periods_s: np.ndarray | None = None
     accepted: np.ndarray | None = None
@@ -158,26 +160,30 @@ def run_simulated_episode(policy, env_seed: int, delays, key, *, max_steps: int 
         delays=np.asarray(used, int), exec_delays=np.asarray(used, int), realized_delays=np.asarray(used, int),
         latencies_s=np.full(len(chunks), np.nan), success=bool(info["success"]),
         num_completed=int(info["num_completed"]), success_step=info["success_step"], steps=n,
-        dt=env.config.dt, hold=np.zeros(n, bool))
+        dt=env.config.dt, step_limit=int(limit), hold=np.zeros(n, bool))
 
 
 def episode_metrics(record: EpisodeRecord) -> dict:
     """Per-trial values of the arm study table ([A-24], [M-1], [M-3]).
 
     ``success``, ``completion`` (completed parts / 4), ``completed``,
-    ``throughput`` (completed parts per minute of episode time: up to success,
-    else the whole episode), ``D1``..``D3`` and ``boundary`` on the commanded
+    ``duration_s`` (the episode time actually run, ``steps * dt``),
+    ``throughput`` (completed parts per minute of trial time: the success time
+    for a solved episode, else the full trial of ``step_limit`` ticks, so a
+    trial cut short by a stall, a crash or a fault never scores higher than
+    running on would have), ``D1``..``D3`` and ``boundary`` on the commanded
     joint targets, ``latency_ms`` (mean policy-call latency, NaN if not
     measured), ``hold_ticks``.
     """
     if not isinstance(record, EpisodeRecord):
         raise ValueError(f"record must be an EpisodeRecord, got {type(record).__name__}")
+    _check_int("record.step_limit", record.step_limit, max(record.steps, 1))
     a = record.actions[:, JOINT_DIMS]
     out = {"success": bool(record.success), "completed": int(record.num_completed),
            "completion": record.num_completed / NUM_OBJECTS}
-    dur_steps = record.success_step if record.success and record.success_step else max(record.steps, 1)
-    out["duration_s"] = dur_steps * record.dt
-    out["throughput"] = record.num_completed / (out["duration_s"] / 60.0)
+    out["duration_s"] = record.steps * record.dt
+    trial_steps = record.success_step if record.success else record.step_limit
+    out["throughput"] = record.num_completed / (trial_steps * record.dt / 60.0)
     for k in (1, 2, 3):
         out[f"D{k}"] = rmetrics.difference_norm(a, k) if a.shape[0] > k else float("nan")
     has_switch = a.shape[0] > 1 and np.any(record.chunk_index[1:] != record.chunk_index[:-1])

@@ -77,6 +77,8 @@ class ScriptedExpert:
 
     def act(self, obs) -> np.ndarray:
         """Expert action for observation ``obs`` (shape (34,)) ([A-13])."""
+        if np.asarray(obs).dtype.kind not in "iuf":  # booleans and strings are not observations ([A-12])
+            raise ValueError(f"obs must be a finite real array of shape ({OBS_DIM},), got dtype {np.asarray(obs).dtype}")
         o = np.asarray(obs, dtype=np.float64)
         if o.shape != (OBS_DIM,) or not np.all(np.isfinite(o)):
             raise ValueError(f"obs must be a finite array of shape ({OBS_DIM},)")

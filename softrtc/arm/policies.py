@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import tempfile
 import time
 from functools import partial
 from pathlib import Path
@@ -250,25 +251,46 @@ def chunk_dataset(data: dict, horizon: int) -> dict:
     horizon = _check_int("horizon", horizon, 1, 64)
     if not isinstance(data, dict) or not {"obs", "action", "episode_start", "episode_length"} <= set(data):
         raise ValueError("data must be a dict with obs, action, episode_start, episode_length (load_demos)")
-    obs, act = np.asarray(data["obs"]), np.asarray(data["action"])
+    obs = _rows("data['obs']", data["obs"], OBS_DIM)
+    act = _rows("data['action']", data["action"], ACTION_DIM)
+    if obs.ndim != 2 or act.ndim != 2 or obs.shape[0] != act.shape[0] or obs.shape[0] < 1:
+        raise ValueError(f"data['obs'] and data['action'] must have shapes [N >= 1, {OBS_DIM}] and "
+                         f"[N, {ACTION_DIM}], got {list(obs.shape)} and {list(act.shape)}")
+    n = obs.shape[0]
+    ep = {}
+    for name in ("episode_start", "episode_length"):
+        v = np.asarray(data[name])
+        if v.dtype.kind not in "iu" or v.ndim != 1 or v.size < 1:
+            raise ValueError(f"data['{name}'] must be a non-empty 1-D integer array, got dtype {v.dtype} "
+                             f"and shape {list(v.shape)}")
+        ep[name] = v.astype(np.int64)
+    starts, lengths = ep["episode_start"], ep["episode_length"]
+    # [A-16] layout: episodes of >= 1 row, concatenated in order, covering every row exactly once.
+    if lengths.shape != starts.shape or np.any(lengths < 1):
+        raise ValueError(f"data['episode_length'] must hold one integer >= 1 per episode start, got {lengths!r}")
+    expected = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    if not np.array_equal(starts, expected) or int(lengths.sum()) != n:
+        raise ValueError(f"data['episode_start'] must be the running sum of data['episode_length'] from 0, with the "
+                         f"lengths summing to the {n} rows ([A-16]), got starts {starts!r}")
     idx = []
-    for st, ln in zip(np.asarray(data["episode_start"]), np.asarray(data["episode_length"])):
+    for st, ln in zip(starts, lengths):
         rows = st + np.arange(ln)
         idx.append(np.minimum(rows[:, None] + np.arange(horizon)[None], st + ln - 1))
     idx = np.concatenate(idx)
-    return {"obs": obs[idx[:, 0]], "chunks": act[idx]}
+    return {"obs": np.asarray(data["obs"])[idx[:, 0]], "chunks": np.asarray(data["action"])[idx]}
 
 
-def arm_train_config(method: str, config: ArmPolicyConfig, steps: int, batch_size: int = 256,
+def arm_train_config(method: str, config: ArmPolicyConfig, steps: int, batch_size: int = 128,
                      learning_rate: float = 1e-3) -> TrainConfig:
     """The chapter-T config of an arm objective ([A-20], [T-1]).
 
     ``naive`` -> ``none``, ``train_hard`` -> ``hard``, ``train_soft`` -> ``soft``
     with the default window of [W-7] (delay-scaled, lambda = 2, h_max = 5,
     linear, rtc, clip); ``execute_horizon`` = s; delays uniform on
-    ``0 .. min(s, H - s)`` ([D-1], [D-4]); AdamW (weight decay 1e-4) with
-    gradient clipping at 1, linear warm-up over ``min(200, steps // 10)``
-    steps, then cosine decay to 5% of ``learning_rate`` at ``steps`` ([T-6]).
+    ``0 .. min(s, H - s)`` ([D-1], [D-4]); AdamW (weight decay 1e-4, Adam
+    moments at the [T-1] defaults) with gradient clipping at 1, linear warm-up
+    over ``min(200, steps // 10)`` steps, then cosine decay to 5% of
+    ``learning_rate`` at ``steps`` ([T-6]); batch 128 by default.
     """
     method = _check_choice("method", method, TRAIN_METHODS)
     if not isinstance(config, ArmPolicyConfig):
@@ -284,7 +306,7 @@ def arm_train_config(method: str, config: ArmPolicyConfig, steps: int, batch_siz
 
 def train_flow_policy(dataset: dict, normalizer: Normalizer, method: str, steps: int, seed: int, *,
                       config: ArmPolicyConfig = ArmPolicyConfig(), init: FlowPolicy | None = None,
-                      batch_size: int = 256, learning_rate: float = 1e-3,
+                      batch_size: int = 128, learning_rate: float = 1e-3,
                       progress: bool = False) -> tuple[FlowPolicy, np.ndarray, TrainConfig]:
     """Train (or fine-tune ``init``) a flow policy with the objective of ``method`` ([A-20]).
 
@@ -417,6 +439,13 @@ def _later_chunk(static, method, state, window, nm, obs, prior, d, key):
 
 
 
+def _check_window(window) -> None:
+    """``window`` is None or a JAX :class:`softrtc.jax.weights.SoftWindow` ([W-7]), checked before any compilation."""
+    if window is not None and not isinstance(window, SoftWindow):
+        raise ValueError(f"window must be a softrtc.jax.weights.SoftWindow or None (convert a reference window with "
+                         f"softrtc.jax.weights.from_reference), got {type(window).__name__}")
+
+
 class ArmPolicy:
     """A flow policy with its normalizer and chunk generator ([A-19], [S-6]).
 
@@ -438,6 +467,7 @@ class ArmPolicy:
         if not isinstance(config, ArmPolicyConfig):
             raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
         self.method = _check_choice("method", method, jmethods.METHODS)
+        _check_window(window)
         self.trained_as = trained_as or method
         self.meta = dict(meta or {})
         if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
@@ -495,6 +525,7 @@ def untrained_policy(seed: int = 0, method: str = "naive", config: ArmPolicyConf
     method = _check_choice("method", method, jmethods.METHODS)
     if not isinstance(config, ArmPolicyConfig):
         raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
+    _check_window(window)
     model = _new_model(config, seed)
     norm = Normalizer(np.zeros(FEATURE_DIM), np.ones(FEATURE_DIM), np.array([0.0, -1.0, 0.0, 0.5]),
                       np.array([0.3, 0.3, 0.3, 0.3]))
@@ -534,9 +565,11 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
                        verbose: bool = True) -> dict:
     """Demos, base BC policy, then Train Hard / Train Soft RTC fine-tunes, saved to ``out_dir`` ([A-20]).
 
-    Demonstrations: ``generate_demos(episodes, seed, noise_std)`` ([A-15]), or
-    the file ``demos`` written by it with those arguments (checked against its
-    stored seed and noise level). The base is trained for ``steps`` steps with
+    Demonstrations: ``generate_demos(episodes, seed, noise_std)`` ([A-15])
+    written to a temporary folder that is removed afterwards, or the file
+    ``demos`` written by it with those arguments (checked against its stored
+    seed and noise level). Only ``base.npz``, ``train_hard.npz`` and
+    ``train_soft.npz`` are written to ``out_dir``; nothing there is removed. The base is trained for ``steps`` steps with
     seed ``seed``; each fine-tune starts from the base and runs
     ``finetune_steps`` (``None``: ``steps // 4``) with seed ``seed + 1`` (hard)
     and ``seed + 2`` (soft), learning rate ``learning_rate / 3``. Training is
@@ -552,6 +585,7 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
                                                                                    10**7)
     seed = _check_int("seed", seed, 0, 2**31 - 3)
     noise_std = _check_float("noise_std", noise_std, 0.0, 1.0)
+    batch_size = _check_int("batch_size", batch_size, 1, 1 << 16)
     learning_rate = _check_float("learning_rate", learning_rate, 0.0, 1.0, lo_open=True)
     if not isinstance(config, ArmPolicyConfig):
         raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
@@ -559,10 +593,12 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if demos is None:
-        demo_path = out / "demos.npz"
-        info = generate_demos(episodes, seed, noise_std, str(demo_path))
-        data = load_demos(str(demo_path))
-        demo_path.unlink()  # reproducible from (episodes, seed, noise_std); not shipped
+        # [A-20] the demonstrations are reproducible from (episodes, seed, noise_std) and not kept: they go to a
+        # temporary folder of this call, so no file of out_dir but the three checkpoints is written or removed.
+        with tempfile.TemporaryDirectory(prefix="softrtc-arm-demos-") as tmp:
+            demo_path = Path(tmp) / "demos.npz"
+            info = generate_demos(episodes, seed, noise_std, str(demo_path))
+            data = load_demos(str(demo_path))
         if verbose:
             print(f"demos: {info['episodes']} episodes, {info['steps']} steps, expert success "
                   f"{info['success_rate']:.2f} ({time.perf_counter() - t0:.0f} s)", flush=True)

@@ -32,6 +32,18 @@ from .executor import EpisodeRecord
 __all__ = ["RuntimeConfig", "run_realtime_episode", "predict_delay", "jitter_summary"]
 
 
+# Upper bound of an added latency ([R-8]): far beyond any deadline of [R-5] at a sensible control rate.
+MAX_ADDED_LATENCY_S = 10.0
+
+
+def _seconds(name: str, v, lo: float, hi: float) -> float:
+    """A finite real number of seconds in ``[lo, hi]`` (NumPy scalars included, booleans and strings not)."""
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(v) or not lo <= v <= hi:
+        raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {v!r}")
+    return float(v)
+
+
 @dataclasses.dataclass(frozen=True)
 class RuntimeConfig:
     """Runtime parameters ([R-1]..[R-8]).
@@ -49,14 +61,14 @@ class RuntimeConfig:
     join_timeout_s: float = 2.0
 
     def __post_init__(self):
-        for name, lo, hi in (("added_latency_s", 0.0, 10.0), ("join_timeout_s", 0.0, 60.0)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
-                raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {v!r}")
+        # NumPy scalars are accepted like Python ones (and stored as Python numbers); booleans are not numbers.
+        for name, lo, hi in (("added_latency_s", 0.0, MAX_ADDED_LATENCY_S), ("join_timeout_s", 0.0, 60.0)):
+            object.__setattr__(self, name, _seconds(name, getattr(self, name), lo, hi))
         for name, lo, hi in (("latency_window", 1, 1000), ("max_hold_ticks", 1, 10**6)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {v!r}")
+            object.__setattr__(self, name, int(v))
 
 
 def predict_delay(recent_delays, max_delay: int) -> int:
@@ -90,9 +102,9 @@ def jitter_summary(periods_s) -> dict:
 class _Worker(threading.Thread):
     """Inference thread: one request at a time; results and exceptions go to ``out`` ([R-1], [R-7])."""
 
-    def __init__(self, policy, added_latency, out: queue.Queue):
+    def __init__(self, policy, out: queue.Queue):
         super().__init__(daemon=True, name="softrtc-arm-inference")
-        self.policy, self.added_latency, self.out = policy, added_latency, out
+        self.policy, self.out = policy, out
         self.s = policy.s
         self.requests: queue.Queue = queue.Queue()
 
@@ -107,13 +119,12 @@ class _Worker(threading.Thread):
             req = self.requests.get()
             if req is None:
                 return
-            c, obs, prev, d, key, t_req = req
+            c, obs, prev, d, key, t_req, extra = req
             try:
                 # Keys and priors are computed here so the control thread never dispatches JAX work.
                 key = jax.random.fold_in(key, c)
                 prior = None if prev is None else np.asarray(jexec.shift_prior(prev, self.s), np.float64)
                 chunk = np.asarray(self.policy.generate(obs, prior, d, key), np.float64)
-                extra = self.added_latency(c) if callable(self.added_latency) else self.added_latency
                 t_compute = time.perf_counter() - t_req
                 # Holding the result back plays a slower model; it does not block the control loop.
                 if extra > 0:
@@ -141,10 +152,13 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
     ``policy`` has ``H``, ``s`` and ``generate(obs, prior, d, key)``; request
     ``c`` uses ``jax.random.fold_in(key, c)``. ``added_latency`` (optional)
     overrides ``config.added_latency_s`` with a callable ``c -> seconds`` (to
-    inject stalls); an exception raised by ``generate`` is a worker crash
-    ([R-7]). The episode ends when the environment is done ([A-11]), after
-    ``max_steps`` ticks, or at a fault ([R-6], [R-7]). Outcomes depend on
-    wall-clock timing and are not bitwise reproducible.
+    inject stalls, [R-8]); it is called in the control thread when request
+    ``c`` is made, and a result that is not a finite number of seconds in
+    ``[0, 10]`` raises ``ValueError`` naming ``added_latency`` from this call
+    (after the worker is stopped). An exception raised by ``generate`` is a
+    worker crash ([R-7]). The episode ends when the environment is done
+    ([A-11]), after ``max_steps`` ticks, or at a fault ([R-6], [R-7]).
+    Outcomes depend on wall-clock timing and are not bitwise reproducible.
     """
     H = getattr(policy, "H", None)
     s = getattr(policy, "s", None)
@@ -166,7 +180,13 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
     d_max = min(s, H - s)
 
     results: queue.Queue = queue.Queue()
-    worker = _Worker(policy, added_latency if added_latency is not None else config.added_latency_s, results)
+    worker = _Worker(policy, results)
+
+    def extra_latency(c: int) -> float:
+        # [R-8] the caller's per-request latency, checked here: a bad value is the caller's error, not a worker crash.
+        if added_latency is None:
+            return config.added_latency_s
+        return _seconds(f"added_latency({c})", added_latency(c), 0.0, MAX_ADDED_LATENCY_S)
     worker.warm(H)
     worker.start()
 
@@ -182,6 +202,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
     in_flight: set = set()
 
     def request(c, obs, prev, d, tick):
+        extra = extra_latency(c)
         t_req = time.perf_counter()
         t_req_of[c] = t_req
         in_flight.add(c)
@@ -192,7 +213,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
         d_real.append(-1)
         lat.append(float("nan"))
         accepted.append(False)
-        worker.requests.put((c, np.array(obs), None if prev is None else np.array(prev), d, key, t_req))
+        worker.requests.put((c, np.array(obs), None if prev is None else np.array(prev), d, key, t_req, extra))
 
     obs = env.reset(int(env_seed))
     try:
@@ -264,7 +285,8 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
             if pending is not None and k - pending[1] >= d_max:
                 c_late = pending[0]
                 events.append((k, "late_reject", c_late))
-                d_real[c_late] = -2  # marks "rejected late"; its latency is logged on arrival
+                # [R-9] -2 marks "rejected late" in both delays (nothing of it ran); its latency is logged on arrival.
+                d_real[c_late] = d_exec[c_late] = -2
                 pending = None
                 cur = None
                 restart = True
@@ -339,7 +361,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
         request_step=np.asarray(req_step, int), delays=np.asarray(d_pred, int), exec_delays=np.asarray(d_exec, int),
         realized_delays=np.asarray(d_real, int), latencies_s=np.asarray(lat, np.float64),
         success=bool(info["success"]), num_completed=int(info["num_completed"]),
-        success_step=info["success_step"], steps=n, dt=dt, hold=np.asarray(hold, bool),
+        success_step=info["success_step"], steps=n, dt=dt, step_limit=int(limit), hold=np.asarray(hold, bool),
         periods_s=np.asarray(periods, np.float64), accepted=np.asarray(accepted, bool), fault=fault, events=events)
 
 
