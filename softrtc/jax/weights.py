@@ -150,7 +150,7 @@ def _effective(H, d, e, s, ocode):
 class SoftWindow:
     """Soft RTC window ([W-7]) as a pytree: traced rule parameters, static names.
 
-    Default: the paper's main setting, delay-scaled lam = 2, h_max = 5,
+    Default ([W-7]): the paper's main rule and schedule, delay-scaled lam = 2, h_max = 5,
     linear, "rtc", "clip". Convert a reference window with :func:`from_reference`.
     """
 

@@ -60,7 +60,7 @@ def demo() -> int:
     print("Prefix weights, d=2, e=6, H=10 ([W-4] rtc / [W-5] paper):")
     print("  rtc   ", np.round(prefix_weights(10, 2, 6, "linear"), 3).tolist())
     print("  paper ", np.round(prefix_weights(10, 2, 6, "linear", "paper"), 3).tolist())
-    print("\nSoft RTC weights of the paper's main setting ([W-7]), H=8, s=4:")
+    print("\nSoft RTC weights of the default window (the paper's main rule and schedule, rtc, clip; [W-7]), H=8, s=4:")
     print(weights_table(8, 4, SoftWindow()))
     print("\nSame with overflow='zeros' (as in the paper's experiments, [W-6]):")
     print(weights_table(8, 4, SoftWindow(overflow="zeros")))

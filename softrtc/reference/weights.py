@@ -109,7 +109,7 @@ def effective_endpoint(H: int, d: int, e: int, s: int | None = None, overflow: s
 class SoftWindow:
     """Soft RTC window configuration ([W-7]).
 
-    Default: the paper's main setting, e(d) = min(ceil(2 d), 5), linear schedule,
+    Default ([W-7]): the paper's main rule and schedule, e(d) = min(ceil(2 d), 5), linear,
     "rtc" parametrization, window clipped at the overlap.
     """
 
