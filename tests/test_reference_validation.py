@@ -262,3 +262,25 @@ def test_velocity_field_output_is_checked():
                  lambda: JG.guided_sample(jbad, bo, bx, by, w, 2)):
         with pytest.raises(ValueError, match="velocity_fn must return"):
             call()
+
+
+def test_implementation_ranges():
+    """N-12, D-3, M-1, M-5: the stated bounds are where inputs become errors, in the reference
+    and (for delays) in the JAX twin; a table cannot draw a delay above 4096."""
+    from softrtc.jax import delays as JD
+
+    p = np.array([0.5, 0.5])
+    assert delays.sample_delay(p, 4095, 0.9) == 4096
+    assert int(JD.sample_delay(p, 4095, 0.9)) == 4096
+    for mod in (delays, JD):
+        with pytest.raises(ValueError, match="d_min must be an integer in \\[0, 4095\\]"):
+            mod.sample_delay(p, 4096, 0.9)
+    with pytest.raises(ValueError, match="num_steps"):
+        sampler.euler_times(65537)
+    assert sampler.euler_times(65536).size == 65536
+    with pytest.raises(ValueError, match="order"):
+        metrics.difference_norm(np.zeros((20, 1)), 17)
+    with pytest.raises(ValueError, match="num_resamples"):
+        metrics.bootstrap_indices(3, 10**7 + 1, 0)
+    with pytest.raises(ValueError, match="d must be"):
+        endpoints.endpoint(endpoints.hard(), 4097)

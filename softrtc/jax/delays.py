@@ -67,8 +67,9 @@ def sample_delay(probs, d_min, u) -> jax.Array:
     ``u`` in [0, 1) (any shape, checked when concrete); ``d_min`` may be traced.
     """
     c = delay_cdf(probs)
-    d_min = v.int_value("d_min", d_min, 0, MAX_DELAY)
-    u = v.array("u", u, lo=0.0)
+    # The table spans d_min .. d_min + n - 1, which must stay within [D-1]'s range.
+    d_min = v.int_value("d_min", d_min, 0, MAX_DELAY - c.shape[0] + 1)
+    u = v.array("u", u, lo=0.0, allow_empty=True)  # any shape, an empty batch of draws included
     if not v.is_traced(u) and u.size and float(np.max(np.asarray(u))) >= 1.0:
         raise ValueError(f"u must lie in [0, 1), got max {float(np.max(np.asarray(u)))}")
     return _inverse_cdf(c, d_min, u)

@@ -52,6 +52,7 @@ def delay_cdf(probs) -> np.ndarray:
 def sample_delay(probs, d_min: int, u: float) -> int:
     """Inverse-CDF draw ([D-3]): d = d_min + #{k : cdf[k] <= u}, for u in [0, 1)."""
     c = delay_cdf(probs)
-    d_min = check_int("d_min", d_min, 0, MAX_DELAY)
+    # The table spans d_min .. d_min + n - 1, which must stay within [D-1]'s range.
+    d_min = check_int("d_min", d_min, 0, MAX_DELAY - c.size + 1)
     u = check_real("u", u, 0.0, 1.0, hi_open=True)
     return d_min + int(np.sum(c <= u))
