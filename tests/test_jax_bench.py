@@ -131,6 +131,9 @@ def test_encode_obs_splits_the_input_projection():
     np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="obs_encoding"):
         pol.apply_conditioned(obs, x, cond, obs_encoding=jnp.zeros((3, 16)))
+    # P-12: an encoding of another observation is caught when the values are concrete.
+    with pytest.raises(ValueError, match="obs_encoding must equal encode_obs"):
+        pol.apply_conditioned(obs, x, cond, obs_encoding=pol.encode_obs(obs + 1.0))
     with pytest.raises(ValueError, match="obs"):
         pol.encode_obs(jnp.zeros((3, pol.obs_dim + 1)))
 

@@ -542,17 +542,25 @@ class FlowPolicy(nnx.Module):
         """
         obs, x = self._check_obs_x(obs, x)
         self._check_cond(cond, obs.shape[0])
-        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]),
+        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs),
                              pullback=self._check_pullback(pullback))
 
-    def _check_encoding(self, obs_encoding: Any, batch: int) -> jax.Array | None:
+    def _check_encoding(self, obs_encoding: Any, obs: jax.Array) -> jax.Array | None:
+        """``obs_encoding`` must be ``encode_obs(obs)`` [P-12]: its shape always; its values within
+        [P-14] when both are concrete (under jit they are the caller's promise)."""
         if obs_encoding is None:
             return None
+        batch = obs.shape[0]
         enc = _as_float_array("obs_encoding", obs_encoding)
         if tuple(enc.shape) != (batch, 1, self.channel_dim):
             raise ValueError(f"obs_encoding must have shape [B, 1, C] = [{batch}, 1, {self.channel_dim}] "
                              f"(encode_obs(obs)), got {tuple(enc.shape)}")
         _check_finite("obs_encoding", enc)
+        if not (_is_tracer(enc) or _is_tracer(obs) or _is_tracer(self.in_proj.kernel[...])):
+            want = np.asarray(self.encode_obs(obs))
+            if not np.allclose(np.asarray(enc), want, rtol=1e-4, atol=1e-4):
+                raise ValueError("obs_encoding must equal encode_obs(obs) within rtol = atol = 1e-4 [P-14]; "
+                                 "it was computed from another observation or other parameters")
         return enc
 
     def pullback_kernels(self) -> dict:
@@ -667,7 +675,7 @@ class FlowPolicy(nnx.Module):
         head = int(head)
         obs, x = self._check_obs_x(obs, x)
         self._check_cond(cond, obs.shape[0])
-        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs.shape[0]), head=head,
+        return self._forward(obs, x, cond, self._check_encoding(obs_encoding, obs), head=head,
                              pullback=self._check_pullback(pullback))
 
     def __call__(self, obs: Any, x: Any, t: Any) -> jax.Array:
