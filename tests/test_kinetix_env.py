@@ -82,8 +82,31 @@ def test_missing_level_files_are_named(tmp_path):
     assert "catapult.json" in msg and "trampoline.json" in msg and "grasp_easy.json" not in msg
     with pytest.raises(FileNotFoundError, match="mjc_walker.json"):
         kenv.make_env("mjc_walker", levels_dir=tmp_path)
-    with pytest.raises(FileNotFoundError, match="not a directory"):
-        kenv.make_env("grasp_easy", levels_dir=tmp_path / "nope")
+    missing = tmp_path / "nope"
+    with pytest.raises(FileNotFoundError) as ei:
+        kenv.make_env("grasp_easy", levels_dir=missing)
+    assert str(ei.value) == (f"levels_dir must be a directory holding the Kinetix level files (grasp_easy.json); "
+                             f"{missing} does not exist")
+    with pytest.raises(FileNotFoundError, match=r"^levels_dir must be a directory .* is not a directory$"):
+        kenv.resolve_levels_dir(tmp_path / "grasp_easy.json", ("grasp_easy",))
+
+
+@needs_env
+def test_installed_package_has_no_default_levels_dir(tmp_path, monkeypatch):
+    """K-2, K-3: outside a source checkout (no pyproject.toml above the package) there is no default
+    levels directory; a call without levels_dir says so and asks for levels_dir / --levels-dir."""
+    from softrtc.kinetix import env as kenv
+
+    site = tmp_path / "lib" / "python3" / "site-packages" / "softrtc" / "kinetix"
+    site.mkdir(parents=True)
+    (tmp_path / "lib" / "shared" / "kinetix-levels").mkdir(parents=True)  # the old fallback: never used
+    monkeypatch.setattr(kenv, "__file__", str(site / "env.py"))
+    assert kenv.project_root() is None and kenv.default_levels_dir() is None
+    with pytest.raises(FileNotFoundError, match=r"installed package .* pass levels_dir= \(command line: --levels-dir\)"):
+        kenv.resolve_levels_dir(None, ("grasp_easy",))
+    assert kenv.resolve_levels_dir(SHARED_LEVELS, ("grasp_easy",)) == SHARED_LEVELS  # an explicit dir still works
+    (tmp_path / "pyproject.toml").write_text("")  # a source checkout again
+    assert kenv.project_root() == tmp_path
 
 
 @needs_env
@@ -240,6 +263,22 @@ def test_timeout_auto_resets_to_level(task, jreset, jstep):
     # one step earlier the episode continues
     obs, state, reward, done, info = jstep(jax.random.key(3), state0.replace(timestep=254), jnp.zeros(6))
     assert not bool(done) and not bool(info["timeout"]) and int(state.timestep) == 255
+
+
+@needs_env
+@pytest.mark.slow
+def test_fail_on_the_last_step_is_a_timeout(task, jreset, jstep):
+    """K-10: an episode that fails (NaN state, reward -1) on its 256th step is flagged timeout as well;
+    the same fail earlier is no timeout, and neither is solved."""
+    import jax
+    import jax.numpy as jnp
+
+    _, state0 = jreset(jax.random.key(0))
+    nan = state0.replace(polygon=state0.polygon.replace(position=jnp.full_like(state0.polygon.position, jnp.nan)))
+    for t, timeout in ((10, False), (255, True)):
+        _, state, reward, done, info = jstep(jax.random.key(3), nan.replace(timestep=t), jnp.zeros(6, jnp.float32))
+        assert bool(done) and float(reward) == -1.0 and int(state.timestep) == 0, t
+        assert bool(info["timeout"]) is timeout and not bool(info["solved"]), t
 
 
 @needs_env

@@ -1,8 +1,8 @@
 """Tests of the Kinetix evaluation protocol, release-asset fine-tuning and the CLI ([KE-1]..[KE-12]).
 
-One rollout configuration (training-time sampler family, a small freshly
-initialised policy, 10 envs, 24 steps) is compiled once per module and
-reused by every rollout test and by the end-to-end evaluation.
+One rollout configuration per sampler family (training-time and guided, a
+small freshly initialised policy, 10 envs, 24 steps) is compiled once per
+module and reused by every rollout test and by the end-to-end evaluation.
 """
 
 from __future__ import annotations
@@ -59,7 +59,11 @@ def setup():
     delays = np.repeat(np.asarray(DELAYS), EPISODES)
     outs = {m: ro(pol, H.parse_method(m), "grasp_easy", keys, delays)
             for m in ("naive", "train_hard", "train_soft", "train_soft:offset:0")}
-    return {"task": task, "policy": pol, "rollout": ro, "keys": keys, "delays": delays, "outs": outs}
+    guided = H.make_rollout(task, pol, "guided", n, episode_steps=STEPS)
+    outs |= {m: guided(pol, H.parse_method(m), "grasp_easy", keys, delays)
+             for m in ("inference_hard", "inference_soft")}
+    return {"task": task, "policy": pol, "rollout": ro, "guided": guided, "keys": keys, "delays": delays,
+            "outs": outs}
 
 
 # ----------------------------------------------------------------------------- cheap checks
@@ -143,15 +147,48 @@ def test_config_and_input_validation():
     assert H.EvalConfig().execute_horizon == 4 and H.EvalConfig().num_flow_steps == 5
     for kw, name in (({"levels": ("nope",)}, "levels"), ({"episodes": 0}, "episodes"),
                      ({"delays": (0, 5)}, "delays"), ({"methods": ("naive", "naive")}, "methods"),
-                     ({"episodes": 2.0}, "episodes"), ({"seed": -1}, "seed")):
-        with pytest.raises(ValueError, match=name):
+                     ({"episodes": 2.0}, "episodes"), ({"seed": -1}, "seed"),
+                     ({"delays": 3}, "delays"), ({"levels": 5}, "levels"), ({"methods": 5}, "methods"),
+                     ({"delays": "01"}, "delays"), ({"levels": None}, "levels"),
+                     ({"episodes": H.EPISODES_MAX + 1}, "episodes"), ({"episode_steps": 0}, "episode_steps")):
+        with pytest.raises(ValueError, match=f"^{name}"):
             H.EvalConfig(**kw)
+    # A bare level or method string is a one-entry sequence; a NumPy array of delays is a sequence.
+    assert H.EvalConfig(levels="catapult", methods="naive", delays=np.arange(3)).delays == (0, 1, 2)
     with pytest.raises(ValueError, match="level"):
         H.episode_keys(0, "nope", 2)
     with pytest.raises(ValueError, match="window"):
         H.MethodSpec("train_hard", window=H.parse_method("train_soft").window)
     with pytest.raises(ValueError, match="level"):
         H.bench_harness("nope")
+    with pytest.raises(ValueError, match=r"^repeats must be an integer \[1, 100\]"):
+        H.bench_harness(repeats=H.REPEATS_MAX + 1)
+
+
+def test_cli_ranges_are_the_librarys():
+    """KE-1, KE-9, KE-12, N-11: each option accepts exactly the range of the library value it sets."""
+    from softrtc.cli import build_parser
+    from softrtc.kinetix import limits
+
+    assert (H.EPISODES_MAX, H.REPEATS_MAX, H.NUM_ENVS_MAX) == (limits.EPISODES_MAX, limits.REPEATS_MAX,
+                                                               limits.NUM_ENVS_MAX)
+    parser = build_parser()
+    ev = ["kinetix", "eval", "--out", "x"]
+    assert parser.parse_args(ev + ["--episodes", str(limits.EPISODES_MAX)]).episodes == limits.EPISODES_MAX
+    assert H.EvalConfig(episodes=limits.EPISODES_MAX).episodes == limits.EPISODES_MAX
+    assert parser.parse_args(["kinetix", "bench", "--repeats", str(limits.REPEATS_MAX)]).repeats == limits.REPEATS_MAX
+    assert parser.parse_args(["kinetix", "bench", "--num-envs", str(limits.NUM_ENVS_MAX)]).num_envs == \
+        limits.NUM_ENVS_MAX
+    for argv in (ev + ["--episodes", str(limits.EPISODES_MAX + 1)],
+                 ["kinetix", "bench", "--repeats", str(limits.REPEATS_MAX + 1)],
+                 ["kinetix", "bench", "--num-envs", str(limits.NUM_ENVS_MAX + 1)]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(argv)
+    # make_rollout and EvalConfig share the episode_steps range ([KE-1]).
+    assert limits.EPISODE_STEPS_MIN == 1
+    assert H.EvalConfig(episode_steps=limits.EPISODE_STEPS_MIN).episode_steps == 1
+    with pytest.raises(ValueError, match="episode_steps"):
+        H.EvalConfig(episode_steps=limits.EPISODE_STEPS_MAX + 1)
 
 
 # ----------------------------------------------------------------------------- rollouts
@@ -169,6 +206,33 @@ def test_zero_delay_identical_for_training_samplers(setup):
     np.testing.assert_array_equal(outs["train_soft"]["chunks"][:, 0], outs["naive"]["chunks"][:, 0])
     # With a delay the methods do differ (the test is not vacuous).
     assert not np.array_equal(outs["train_hard"]["actions"][~d0], outs["naive"]["actions"][~d0])
+
+
+@pytest.mark.slow
+@needs_levels
+def test_guided_rollout_inference_methods(setup):
+    """KE-3, G-1, G-6, X-2, S-6, P-14: the guided family runs inference-time RTC in closed loop.
+
+    The first chunk of every episode is the naive sampler: bitwise the guided program's own naive chunk
+    (inference_hard at d = 0, W = 0, [G-6]) for every method and delay, and the training-time family's
+    naive chunk within [P-14] (another compiled program). inference_hard at d = 0 executes the naive
+    actions; guidance toward the previous chunk changes the executed actions at every d > 0."""
+    outs, delays = setup["outs"], setup["delays"]
+    naive, d0 = outs["naive"], delays == 0
+    tol = {"rtol": 1e-4, "atol": 1e-4}  # [P-14]
+    assert setup["guided"].family == "guided"
+    # Envs are ordered delay-major with the same episode keys at every delay.
+    own_naive = np.tile(outs["inference_hard"]["chunks"][d0][:, 0], (len(DELAYS), 1, 1))
+    for m in ("inference_hard", "inference_soft"):
+        np.testing.assert_array_equal(outs[m]["chunks"][:, 0], own_naive, err_msg=m)
+        np.testing.assert_allclose(outs[m]["chunks"][:, 0], naive["chunks"][:, 0], err_msg=m, **tol)
+        np.testing.assert_allclose(outs[m]["actions"][:, :S], naive["actions"][:, :S], err_msg=m, **tol)
+        for d in range(1, 5):  # far beyond rounding: guidance acts
+            assert np.abs(outs[m]["actions"][delays == d] - naive["actions"][delays == d]).max() > 1e-2, (m, d)
+    np.testing.assert_allclose(outs["inference_hard"]["actions"][d0], naive["actions"][d0], **tol)
+    np.testing.assert_allclose(outs["inference_hard"]["chunks"][d0], naive["chunks"][d0], **tol)
+    # Soft inpainting guides the whole overlap even at d = 0 ([G-1]): not naive after the first chunk.
+    assert np.abs(outs["inference_soft"]["chunks"][d0][:, 1:] - naive["chunks"][d0][:, 1:]).max() > 1e-2
 
 
 @pytest.mark.slow
@@ -237,54 +301,101 @@ def test_rollout_mesh_over_env_axis(setup):
 @needs_levels
 def test_evaluate_end_to_end(setup, tmp_path):
     """KE-1, KE-7, KE-8, M-4, X-6: evaluate two levels, write CSV and the Markdown table (reuses the compile)."""
-    cfg = H.EvalConfig(levels=("grasp_easy", "cartpole_thrust"), methods=("naive", "train_hard", "train_soft"),
+    methods = ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft")
+    cfg = H.EvalConfig(levels=("grasp_easy", "cartpole_thrust"), methods=methods,
                        episodes=EPISODES, episode_steps=STEPS, levels_dir=str(LEVELS_DIR))
     res = H.evaluate(cfg, setup["policy"], progress=False)
     rows = res["episodes"]
-    assert len(rows) == 3 * 2 * len(DELAYS) * EPISODES
+    assert len(rows) == len(methods) * 2 * len(DELAYS) * EPISODES
+    assert set(res["compile_s"]) == {"rtc", "guided"}
     assert all(1 <= r["length"] <= STEPS for r in rows)
     g = {(r["method"], r["level"], r["delay"], r["episode"]): r for r in rows}
     # Same keys for every method: at d = 0 the training-time samplers reproduce naive exactly ([S-7]).
     for lv in cfg.levels:
         for e in range(EPISODES):
-            for m in ("train_hard", "train_soft"):
+            for m in ("train_hard", "train_soft"):  # [S-7]: the same program, bitwise
                 assert g[(m, lv, 0, e)]["return"] == g[("naive", lv, 0, e)]["return"]
-    # grasp_easy rows reproduce the fixture's direct rollout.
-    out = setup["outs"]["naive"]
-    for i, d in enumerate(setup["delays"]):
-        assert g[("naive", "grasp_easy", int(d), i % EPISODES)]["return"] == pytest.approx(float(out["return"][i]))
+            # [G-6] in the guided program: naive within [P-14] of the training-time one.
+            assert g[("inference_hard", lv, 0, e)]["return"] == pytest.approx(g[("naive", lv, 0, e)]["return"],
+                                                                              rel=1e-4, abs=1e-4)
+    # With a delay the inference rows are guided runs, not naive ones.
+    assert max(abs(g[(m, lv, d, e)]["return"] - g[("naive", lv, d, e)]["return"]) for m in ("inference_hard",
+               "inference_soft") for lv in cfg.levels for d in DELAYS[1:] for e in range(EPISODES)) > 1e-3
+    # grasp_easy rows reproduce the fixture's direct rollouts, guided family included.
+    for m in ("naive", "inference_hard", "inference_soft"):
+        out = setup["outs"][m]
+        for i, d in enumerate(setup["delays"]):
+            assert g[(m, "grasp_easy", int(d), i % EPISODES)]["return"] == pytest.approx(float(out["return"][i]))
     paths = H.write_results(res, tmp_path, bootstrap_resamples=200)
     with open(paths["pooled"]) as f:
         pooled = list(csv.DictReader(f))
-    assert {(r["method"], r["scope"]) for r in pooled} == {(m, s) for m in ("naive", "train_hard", "train_soft")
-                                                          for s in ("overall", "high")}
+    assert {(r["method"], r["scope"]) for r in pooled} == {(m, s) for m in methods for s in ("overall", "high")}
     table = Path(paths["table"]).read_text()
-    assert "| Train Hard RTC |" in table and "| Train Soft RTC |" in table
+    for row in ("Inference Hard RTC", "Inference Soft RTC", "Train Hard RTC", "Train Soft RTC"):
+        assert f"| {row} |" in table
+
+
+@needs_levels
+def test_evaluate_checks_every_policy_before_the_first_rollout(monkeypatch):
+    """KE-11, X-1, KE-1: evaluate resolves and checks every (method, level) policy before any rollout runs."""
+    from softrtc.kinetix import env as kenv
+
+    def no_rollout(*args, **kwargs):
+        raise AssertionError("a rollout was built before every policy was checked")
+
+    pol = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM, config=SMALL, rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match=r"^episode_steps must be an integer \[1, 65536\]"):  # EvalConfig's range
+        H.make_rollout(kenv.make_env("grasp_easy", LEVELS_DIR), pol, "rtc", 1, episode_steps=0)
+    monkeypatch.setattr(H, "make_rollout", no_rollout)
+    cfg = H.EvalConfig(levels=("grasp_easy", "catapult"), methods=("naive", "train_hard"), episodes=1,
+                       levels_dir=str(LEVELS_DIR))
+    calls = []
+
+    def policies(spec, level):  # the last (method, level) has no policy
+        calls.append((spec.label, level))
+        return None if (spec.label, level) == ("train_hard", "catapult") else pol
+
+    with pytest.raises(ValueError, match="'train_hard' and level 'catapult'"):
+        H.evaluate(cfg, policies, progress=False)
+    assert calls == [(m, lv) for m in ("naive", "train_hard") for lv in ("grasp_easy", "catapult")]
+    # H = 6 with s = 4 holds delays up to min(4, 2) = 2 only ([X-1]).
+    short = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM,
+                       config=PolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1,
+                                           action_chunk_size=6), rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match=r"^delays must lie in \[0, 2\].*'train_hard' and level 'catapult'"):
+        H.evaluate(cfg, lambda spec, level: short if spec.label == "train_hard" and level == "catapult" else pol,
+                   progress=False)
+    wrong = FlowPolicy(obs_dim=5, action_dim=kenv.ACTION_DIM, config=SMALL, rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match="obs_dim=679"):
+        H.evaluate(cfg, {"grasp_easy": pol, "catapult": wrong}, progress=False)
 
 
 # ----------------------------------------------------------------------------- release assets
 
 
-def _write_release(tmp_path, obs_dim=5, action_dim=2):
-    """Tiny files in exactly the release formats: expert .npz ([K-14]) and a pickled pure dict ([P-8])."""
-    cfg = PolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1, action_chunk_size=8)
-    pol = FlowPolicy(obs_dim=obs_dim, action_dim=action_dim, config=cfg, rngs=nnx.Rngs(3))
+def _write_release(tmp_path, obs_dim=5, action_dim=2, chunks=(("grasp_easy", 8),)):
+    """Tiny files in exactly the release formats: expert .npz ([K-14]) and a pickled pure dict ([P-8]),
+    one pair per (level, chunk size H) of ``chunks``; returns the first level's policy."""
     bc = tmp_path / "bc" / "24" / "policies"
     bc.mkdir(parents=True)
-    with open(bc / "worlds_l_grasp_easy.pkl", "wb") as f:
-        pickle.dump(jax.tree.map(np.asarray, state_pure_dict(pol)), f)
-    rng = np.random.default_rng(0)
-    S_, E_ = 24, 2
-    done = np.zeros((S_, E_), bool)
-    done[10, 0] = True
-    arrays = {"obs": rng.normal(size=(S_, E_, obs_dim)).astype(np.float32),
-              "action": rng.uniform(-1, 1, size=(S_, E_, action_dim)).astype(np.float32),
-              "done": done, "solved": done.astype(np.float32), "return_": np.zeros((S_, E_), np.float32),
-              "length": np.zeros((S_, E_), np.float32)}
     data = tmp_path / "data"
     data.mkdir()
-    np.savez(data / kdata.expert_data_filename("grasp_easy"), **arrays)
-    return pol, tmp_path / "bc", data
+    pols = []
+    for level, h in chunks:
+        cfg = PolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1, action_chunk_size=h)
+        pols.append(FlowPolicy(obs_dim=obs_dim, action_dim=action_dim, config=cfg, rngs=nnx.Rngs(3)))
+        with open(bc / f"worlds_l_{level}.pkl", "wb") as f:
+            pickle.dump(jax.tree.map(np.asarray, state_pure_dict(pols[-1])), f)
+        rng = np.random.default_rng(0)
+        S_, E_ = 24, 2
+        done = np.zeros((S_, E_), bool)
+        done[10, 0] = True
+        arrays = {"obs": rng.normal(size=(S_, E_, obs_dim)).astype(np.float32),
+                  "action": rng.uniform(-1, 1, size=(S_, E_, action_dim)).astype(np.float32),
+                  "done": done, "solved": done.astype(np.float32), "return_": np.zeros((S_, E_), np.float32),
+                  "length": np.zeros((S_, E_), np.float32)}
+        np.savez(data / kdata.expert_data_filename(level), **arrays)
+    return pols[0], tmp_path / "bc", data
 
 
 def test_release_policy_loader(tmp_path):
@@ -342,7 +453,10 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
 
     (tmp_path / "afile").write_text("x")
     cases = [
-        (["kinetix", "eval", "--levels", "grasp_easy,nope", "--out", str(tmp_path)], "levels"),
+        (["kinetix", "eval", "--levels", "grasp_easy,nope", "--out", str(tmp_path)], "--levels entries"),
+        (["kinetix", "eval", "--delays", "0,5", "--out", str(tmp_path)], "--delays entries must be an integer [0, 4]"),
+        (["kinetix", "eval", "--methods", "naive,fancy", "--out", str(tmp_path)], "--methods entry"),
+        (["kinetix", "eval", "--episodes", "65537", "--out", str(tmp_path)], "--episodes"),
         (["kinetix", "eval", "--levels", "grasp_easy", "--levels-dir", str(tmp_path / "none"),
           "--out", str(tmp_path)], "--levels-dir"),
         (["kinetix", "eval", "--methods", "train_soft:wide", "--out", str(tmp_path)], "method"),
@@ -361,7 +475,9 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
           "--window", "bogus", "--out", str(tmp_path / "ft")], "--window 'bogus' is not a soft window"),
         (["kinetix", "finetune", "--data", str(tmp_path), "--bc", str(tmp_path), "--method", "soft",
           "--lr", "0", "--out", str(tmp_path / "ft")], "--lr"),
-        (["kinetix", "bench", "--level", "nope"], "level"),
+        (["kinetix", "bench", "--level", "nope"], "--level must be one of"),
+        (["kinetix", "bench", "--method", "fancy"], "--method must start with one of"),
+        (["kinetix", "bench", "--repeats", "101"], "--repeats"),
         (["kinetix", "bench", "--out", str(tmp_path)], "--out"),
     ]
     for argv, word in cases:
@@ -370,3 +486,106 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
         last = err.strip().splitlines()[-1]
         assert last.startswith("softrtc kinetix ") and word in last and "Traceback" not in err, err
     assert not (tmp_path / "ft").exists()  # nothing trained before the missing inputs were found
+
+
+def _cli_status(main, argv):
+    try:
+        return main(argv)
+    except SystemExit as exc:  # argparse: usage line, then the error line
+        return exc.code
+
+
+@needs_levels
+def test_cli_eval_checks_every_policy_folder_first(tmp_path, capsys, monkeypatch):
+    """KE-11, KE-12, N-11: every --method-policy and every (folder, level) policy is checked before the
+    evaluation starts; an error is one line naming the option, exit status 2."""
+    from softrtc.cli import main
+
+    def no_eval(*args, **kwargs):
+        raise AssertionError("the evaluation started before every policy folder was checked")
+
+    monkeypatch.setattr(H, "evaluate", no_eval)
+    _, bc, _ = _write_release(tmp_path)  # grasp_easy only
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "grasp_easy.npz").write_bytes(b"not a checkpoint")
+    base = ["kinetix", "eval", "--levels-dir", str(LEVELS_DIR), "--levels", "grasp_easy", "--episodes", "1",
+            "--out", str(tmp_path / "out"), "--no-progress", "--policy-dir", str(bc)]
+    two = ["--methods", "naive,train_hard"]
+    cases = [
+        (base[:5] + ["grasp_easy,catapult"] + base[6:] + ["--methods", "naive"],
+         f"--policy-dir {bc} has no policy for level 'catapult'"),
+        (base + two + ["--method-policy", f"train_hard={tmp_path / 'none'}"], "--method-policy train_hard="),
+        (base + two + ["--method-policy", f"train_hard={empty}"],
+         f"--method-policy train_hard={empty} has no policy for level 'grasp_easy'"),
+        (base + two + ["--method-policy", f"train_hard={broken}"],
+         f"--method-policy train_hard={broken}: the policy of level 'grasp_easy' does not load"),
+        (base + two + ["--method-policy", f"train_soft={empty}"], "--method-policy method 'train_soft' is not among"),
+        (base + two + ["--method-policy", f"train_hard={bc}", "--method-policy", f"train_hard={bc}"],
+         "--method-policy gives method 'train_hard' twice"),
+        (base + two + ["--method-policy", str(bc)], "--method-policy must be METHOD=DIR"),
+    ]
+    for argv, words in cases:
+        assert _cli_status(main, argv) == 2, argv
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and err.startswith("softrtc kinetix eval: error: "), err
+        assert words in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@needs_levels
+def test_cli_eval_policy_sources(tmp_path, capsys, monkeypatch):
+    """KE-11: --policy-dir serves every method without --method-policy (base policies for naive and the
+    inference rows), each --method-policy its own method, as in the README's evaluation command."""
+    from softrtc.cli import main
+
+    pol, bc, _ = _write_release(tmp_path)
+    tuned = FlowPolicy(obs_dim=pol.obs_dim, action_dim=pol.action_dim, config=pol.config, rngs=nnx.Rngs(9))
+    (tmp_path / "hard").mkdir()
+    jckpt.save_checkpoint(tmp_path / "hard" / "grasp_easy.npz", tuned, {"level": "grasp_easy"})
+    seen = {}
+
+    def fake_evaluate(config, policies, progress=True):
+        rows = []
+        for spec in config.methods:
+            for level in config.levels:
+                seen[spec.label] = policies(spec, level)
+                rows += [{"method": spec.label, "level": level, "delay": d, "episode": 0, "return": 0.0,
+                          "solved": False, "length": 3, "delta": 0.0, "jerk": 0.0} for d in config.delays]
+        return {"episodes": rows, "compile_s": {}, "config": config}
+
+    monkeypatch.setattr(H, "evaluate", fake_evaluate)
+    argv = ["kinetix", "eval", "--levels-dir", str(LEVELS_DIR), "--levels", "grasp_easy", "--episodes", "1",
+            "--methods", "naive,inference_soft,train_hard", "--policy-dir", str(bc),
+            "--method-policy", f"train_hard={tmp_path / 'hard'}", "--out", str(tmp_path / "out"), "--no-progress"]
+    assert _cli_status(main, argv) == 0, capsys.readouterr().err
+    assert "| Inference Soft RTC |" in capsys.readouterr().out
+
+    def same(a, b):
+        return all(np.array_equal(np.asarray(x), np.asarray(y))
+                   for x, y in zip(jax.tree.leaves(state_pure_dict(a)), jax.tree.leaves(state_pure_dict(b))))
+
+    assert seen["naive"] is seen["inference_soft"] and same(seen["naive"], pol)
+    assert same(seen["train_hard"], tuned) and not same(seen["train_hard"], pol)
+
+
+def test_cli_finetune_checks_d_max_first(tmp_path, capsys):
+    """KE-10, KE-12, D-4: --d-max above the release policy's chunk size H stops finetune before any work."""
+    from softrtc.cli import main
+
+    # grasp_easy (trained first) holds --d-max 9, catapult's policy does not.
+    _, bc, data = _write_release(tmp_path, chunks=(("grasp_easy", 16), ("catapult", 8)))
+    argv = ["kinetix", "finetune", "--data", str(data), "--bc", str(bc), "--method", "hard", "--d-max", "9",
+            "--out", str(tmp_path / "ft"), "--no-progress"]
+    assert _cli_status(main, argv) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("softrtc kinetix finetune: error: --d-max must be an integer in [0, 8] "
+                           "(the chunk size H of worlds_l_catapult.pkl), got 9"), err
+    assert not (tmp_path / "ft").exists()
+    from softrtc.kinetix import finetune as ft
+
+    with pytest.raises(ValueError, match=r"^d_max must be an integer in \[0, 8\]"):  # the library checks too
+        ft.finetune_level(data, bc, "catapult", "hard", tmp_path / "ft", d_max=9)
+    assert not (tmp_path / "ft").exists()

@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import pickle
 import sys
 from pathlib import Path
 
 from .._cli_util import comma_list, group_help, input_dir, int_in, nonempty, output_dir, output_file, real_in
+from .limits import EPISODES_MAX, NUM_ENVS_MAX, REPEATS_MAX
 
 for _dep in ("jax", "flax", "kinetix"):
     if importlib.util.find_spec(_dep) is None:
@@ -24,16 +26,24 @@ _levels = comma_list("value")
 _methods = comma_list("value")
 _delays = comma_list("value", int_in("each delay", 0, 4096))
 
-# Names in the errors of the library calls, as the options that set them.
-_OPTIONS = {"learning_rate": "--lr", "config.d_max": "--d-max", "d_max": "--d-max", "batch_size": "--batch-size",
-            "epochs": "--epochs", "num_envs": "--num-envs", "repeats": "--repeats", "episodes": "--episodes"}
+# Per command, the argument names that start the errors of the library calls, as the options that
+# set them ([KE-12]): every error line names its option.
+_OPTIONS = {
+    "eval": {"levels": "--levels", "methods": "--methods", "method": "--methods entry", "delays": "--delays",
+             "episodes": "--episodes", "seed": "--seed", "levels_dir": "--levels-dir"},
+    "finetune": {"learning_rate": "--lr", "config.d_max": "--d-max", "d_max": "--d-max",
+                 "batch_size": "--batch-size", "epochs": "--epochs", "seed": "--seed", "data_dir": "--data",
+                 "bc_dir": "--bc", "level": "--levels entry"},
+    "bench": {"level": "--level", "method": "--method", "num_envs": "--num-envs", "repeats": "--repeats",
+              "seed": "--seed", "levels_dir": "--levels-dir"},
+}
 
 
 def _fail(cmd: str, exc: BaseException) -> int:
     msg = str(exc)
     field = msg.split(" ", 1)[0]
-    if field in _OPTIONS:
-        msg = _OPTIONS[field] + msg[len(field):]
+    if field in _OPTIONS[cmd]:
+        msg = _OPTIONS[cmd][field] + msg[len(field):]
     print(f"softrtc kinetix {cmd}: error: {msg}", file=sys.stderr)
     return 2
 
@@ -46,7 +56,7 @@ def add_subparsers(subparsers) -> None:
 
     ev = sub.add_parser("eval", help="run the evaluation protocol and write CSV + Markdown results")
     ev.add_argument("--levels", type=_levels, default=None, help="comma-separated level names (default: all 12)")
-    ev.add_argument("--episodes", type=int_in("value", 1, 1 << 20), default=32,
+    ev.add_argument("--episodes", type=int_in("value", 1, EPISODES_MAX), default=32,
                     help="episodes per level, delay and method (default 32)")
     ev.add_argument("--methods", type=_methods, default=None,
                     help="comma-separated methods: naive, inference_hard, inference_soft, train_hard, train_soft, "
@@ -57,11 +67,13 @@ def add_subparsers(subparsers) -> None:
                     help="comma-separated delays (default 0,1,2,3,4)")
     src = ev.add_mutually_exclusive_group()
     src.add_argument("--policy-dir", type=input_dir(), default=None,
-                     help="per-level policies: <level>.npz checkpoints or release worlds_l_<level>.pkl files")
+                     help="per-level policies of every method without --method-policy: <level>.npz checkpoints "
+                          "or release worlds_l_<level>.pkl files (e.g. the release's bc/24)")
     src.add_argument("--init-seed", type=int_in("value", 0, SEED_MAX), default=None,
                      help="evaluate a freshly initialised benchmark-size policy with this seed (default 0)")
     ev.add_argument("--method-policy", action="append", default=[], metavar="METHOD=DIR",
-                    help="policy directory for one method (e.g. train_hard=ft/hard); repeatable")
+                    help="policy directory for one method (e.g. train_hard=ft/hard), overriding --policy-dir; "
+                         "repeatable, once per method")
     ev.add_argument("--levels-dir", type=input_dir(), default=None,
                     help="directory of the level JSON files (default: ../shared/kinetix-levels)")
     ev.add_argument("--seed", type=int_in("value", 0, SEED_MAX), default=0, help="rollout seed (default 0)")
@@ -92,10 +104,10 @@ def add_subparsers(subparsers) -> None:
 
     be = sub.add_parser("bench", help="harness env steps/s vs bare env steps/s, and rollout compile time")
     be.add_argument("--level", type=nonempty(), default="grasp_easy", help="level name (default grasp_easy)")
-    be.add_argument("--num-envs", type=int_in("value", 1, 1 << 16), default=64,
+    be.add_argument("--num-envs", type=int_in("value", 1, NUM_ENVS_MAX), default=64,
                     help="parallel environments (default 64)")
     be.add_argument("--method", type=nonempty(), default="naive", help="sampler method (default naive)")
-    be.add_argument("--repeats", type=int_in("value", 1, 1000), default=1,
+    be.add_argument("--repeats", type=int_in("value", 1, REPEATS_MAX), default=1,
                     help="timed repetitions of each rollout (default 1)")
     be.add_argument("--seed", type=int_in("value", 0, SEED_MAX), default=0, help="rollout seed (default 0)")
     be.add_argument("--levels-dir", type=input_dir(), default=None,
@@ -119,7 +131,7 @@ def _eval_inner(args) -> int:
 
     from . import env as kenv
     from . import harness
-    from .finetune import load_level_policy
+    from .finetune import find_level_policy_file, load_level_policy
 
     levels = tuple(args.levels) if args.levels else kenv.LEVEL_NAMES
     methods = tuple(args.methods) if args.methods else harness.PAPER_METHODS
@@ -127,28 +139,49 @@ def _eval_inner(args) -> int:
     config = harness.EvalConfig(levels=levels, methods=methods, delays=delays, episodes=args.episodes,
                                 seed=args.seed, levels_dir=args.levels_dir)
     kenv.resolve_levels_dir(args.levels_dir, config.levels)  # clear error before anything heavy
-    overrides = {}
+    labels = [spec.label for spec in config.methods]
+    overrides: dict = {}
     for item in args.method_policy:
         m, sep, d = item.partition("=")
-        if not sep or not d:
+        if not sep or not m or not d:
             raise ValueError(f"--method-policy must be METHOD=DIR, got {item!r}")
-        if m not in {s.label for s in config.methods}:
-            raise ValueError(f"--method-policy method {m!r} is not among --methods")
+        if m not in labels:
+            raise ValueError(f"--method-policy method {m!r} is not among --methods ({', '.join(labels)})")
+        if m in overrides:
+            raise ValueError(f"--method-policy gives method {m!r} twice")
+        if not Path(d).is_dir():
+            raise FileNotFoundError(f"--method-policy {item}: {d} "
+                                    f"{'is not a directory' if Path(d).exists() else 'does not exist'}")
         overrides[m] = d
+    # Every (folder, level) pair is found and loaded before the first rollout ([KE-11]): a missing or
+    # broken policy file stops the command at once, not after the methods before it have run.
+    sources = {lab: (f"--method-policy {lab}={overrides[lab]}", overrides[lab]) if lab in overrides
+               else (f"--policy-dir {args.policy_dir}", args.policy_dir) for lab in labels}
     cache: dict = {}
+    for option, d in dict.fromkeys(sources.values()):
+        if d is None:
+            continue
+        for level in config.levels:
+            if (d, level) in cache:  # the same folder named by two options
+                continue
+            try:
+                find_level_policy_file(d, level)
+            except FileNotFoundError:
+                raise FileNotFoundError(f"{option} has no policy for level {level!r}: expected {level}.npz or a "
+                                        f"release worlds_l_{level}.pkl in ., policies/ or <epoch>/policies/") from None
+            try:
+                cache[(d, level)] = load_level_policy(d, level)
+            except (ValueError, OSError, EOFError, pickle.UnpicklingError) as exc:
+                raise ValueError(f"{option}: the policy of level {level!r} does not load: {exc}") from None
     fresh = None
-    if args.policy_dir is None:
+    if any(d is None for _, d in sources.values()):
         seed = 0 if args.init_seed is None else args.init_seed
         fresh = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM, config=PolicyConfig(),
                            rngs=nnx.Rngs(seed))
 
     def policies(spec, level):
-        d = overrides.get(spec.label, args.policy_dir)
-        if d is None:
-            return fresh
-        if (d, level) not in cache:
-            cache[(d, level)] = load_level_policy(d, level)
-        return cache[(d, level)]
+        d = sources[spec.label][1]
+        return fresh if d is None else cache[(d, level)]
 
     result = harness.evaluate(config, policies, progress=not args.no_progress)
     paths = harness.write_results(result, args.out, bootstrap_resamples=config.bootstrap_resamples,
@@ -191,14 +224,24 @@ def _finetune_inner(args) -> int:
         levels = [lv for lv in kenv.LEVEL_NAMES if (data_dir / kdata.expert_data_filename(lv)).is_file()]
         if not levels:
             raise FileNotFoundError(f"no worlds_l_<level>.npz expert data files in {data_dir}")
-    from .finetune import find_bc_file
+    from .finetune import bc_policy_shape, find_bc_file
 
-    for lv in levels:  # every level's inputs exist before the first one trains
+    for lv in levels:  # every level's inputs exist, and fit --d-max, before the first one trains
         if lv not in kenv.LEVEL_NAMES:
             raise ValueError(f"--levels entry {lv!r} is not a level; choose from {', '.join(kenv.LEVEL_NAMES)}")
         if not (data_dir / kdata.expert_data_filename(lv)).is_file():
             raise FileNotFoundError(f"--data {data_dir} has no {kdata.expert_data_filename(lv)}")
-        find_bc_file(args.bc, lv)
+        try:
+            bc_file = find_bc_file(args.bc, lv)
+        except FileNotFoundError as exc:
+            raise FileNotFoundError(f"--bc: {exc}") from None
+        try:
+            H = bc_policy_shape(bc_file)[2].action_chunk_size
+        except (ValueError, OSError, EOFError, pickle.UnpicklingError) as exc:
+            raise ValueError(f"--bc: {bc_file} is not a release policy file: {exc}") from None
+        if args.d_max > H:  # [D-4]: a delay longer than the chunk has no weights
+            raise ValueError(f"--d-max must be an integer in [0, {H}] (the chunk size H of {bc_file.name}), "
+                             f"got {args.d_max}")
     for lv in levels:
         meta = finetune_level(data_dir, args.bc, lv, args.method, args.out, window=window,
                               d_max=args.d_max, batch_size=args.batch_size, learning_rate=args.lr,

@@ -132,19 +132,22 @@ def _check_action(name: str, action: Any, shape: tuple[int, ...]) -> jax.Array:
 # ----------------------------------------------------------------------------
 
 
-def project_root() -> Path:
-    """Directory holding ``pyproject.toml``, found upward from this file [K-2]."""
+def project_root() -> Path | None:
+    """Directory holding ``pyproject.toml``, found upward from this file; ``None`` outside a source checkout [K-2]."""
     here = Path(__file__).resolve().parent
     for cand in (here, *here.parents):
         if (cand / "pyproject.toml").is_file():
             return cand
-    # Installed without the source tree: fall back to the package's parent.
-    return here.parent.parent
+    # An installed package has no project root, hence no default levels directory [K-2].
+    return None
 
 
 def default_levels_dir() -> Path | None:
-    """``<project root>/../shared/kinetix-levels`` when it exists, else ``None`` [K-2]."""
-    cand = (project_root().parent / "shared" / "kinetix-levels").resolve()
+    """``<project root>/../shared/kinetix-levels`` when it exists, else ``None`` (also outside a checkout) [K-2]."""
+    root = project_root()
+    if root is None:
+        return None
+    cand = (root.parent / "shared" / "kinetix-levels").resolve()
     return cand if cand.is_dir() else None
 
 
@@ -152,25 +155,36 @@ def resolve_levels_dir(levels_dir: str | os.PathLike | None = None, names=LEVEL_
     """Absolute levels directory holding ``<name>.json`` for every name [K-2], [K-3].
 
     Raises ``FileNotFoundError`` naming the missing files and the directory
-    searched; ``ValueError`` for an unknown level name.
+    searched (or saying why there is no default); ``ValueError`` for an
+    unknown level name or a ``levels_dir`` that is not a path.
     """
     names = tuple(names)
     for n in names:
         _check_level_name(n)
+    files = ", ".join(n + ".json" for n in names)
     if levels_dir is None:
         d = default_levels_dir()
         if d is None:
-            searched = project_root().parent / "shared" / "kinetix-levels"
+            root = project_root()
+            if root is None:
+                raise FileNotFoundError(
+                    f"no Kinetix levels directory given, and softrtc runs from an installed package "
+                    f"(no pyproject.toml above {Path(__file__).resolve().parent}), which has no default; "
+                    f"pass levels_dir= (command line: --levels-dir) a directory holding {files}"
+                )
+            searched = root.parent / "shared" / "kinetix-levels"
             raise FileNotFoundError(
                 f"no Kinetix levels directory given and the default {searched} does not exist; "
-                f"pass levels_dir= a directory holding {', '.join(n + '.json' for n in names)}"
+                f"pass levels_dir= (command line: --levels-dir) a directory holding {files}"
             )
     else:
         if not isinstance(levels_dir, (str, os.PathLike)):
             raise ValueError(f"levels_dir must be a path or None, got {type(levels_dir).__name__}")
         d = Path(levels_dir).expanduser().resolve()
         if not d.is_dir():
-            raise FileNotFoundError(f"levels_dir {d} is not a directory")
+            why = "is not a directory" if d.exists() else "does not exist"
+            raise FileNotFoundError(f"levels_dir must be a directory holding the Kinetix level files ({files}); "
+                                    f"{d} {why}")
     missing = [f"{n}.json" for n in names if not (d / f"{n}.json").is_file()]
     if missing:
         raise FileNotFoundError(f"Kinetix level files missing from {d}: {', '.join(missing)}")
@@ -263,14 +277,16 @@ class KinetixTask:
         ``action`` [K-8]) and the kinetix step key. When the step ends the
         episode the returned ``obs``/``state`` are those of the reset level
         [K-9]. ``info`` holds ``solved`` (episode ended by reaching the goal),
-        ``timeout``, ``executed_action`` (the noisy action) and ``distance``
-        [K-10].
+        ``timeout`` (episode ended on its 256th step without reaching the goal,
+        a fail or NaN state on that step included), ``executed_action`` (the
+        noisy action) and ``distance`` [K-10].
         """
         _check_key("key", key)
         action = _check_action("action", action, (self.action_dim,))
         noise_key, env_key = jax.random.split(key)
         noisy = action + self.action_noise_std * jax.random.normal(noise_key, action.shape, action.dtype)
-        # timestep before stepping tells a timeout apart from a goal/fail end.
+        # [K-10]: timeout = the step count reaches the limit on this step and the goal is not reached;
+        # a fail or NaN on that same step counts as a timeout too (kinetix reports the goal, not a fail).
         next_t = state.timestep + 1
         obs, state, reward, done, kinfo = self.env.step(env_key, state, noisy, self.env_params)
         goal = jnp.asarray(kinfo["GoalR"], bool)

@@ -22,6 +22,7 @@ import jax
 import numpy as np
 
 from softrtc.jax import checkpoint as jckpt
+from softrtc.jax.delays import MAX_DELAY
 from softrtc.jax.policy import FlowPolicy, PolicyConfig, load_pure_dict
 from softrtc.jax.training import TrainConfig, train
 from softrtc.reference import weights as ref_weights
@@ -29,7 +30,8 @@ from softrtc.reference import weights as ref_weights
 from . import data as kdata
 from .env import LEVEL_NAMES
 
-__all__ = ["infer_policy_shape", "find_bc_file", "load_bc_policy", "load_level_policy", "finetune_level"]
+__all__ = ["infer_policy_shape", "find_bc_file", "bc_policy_shape", "load_bc_policy", "find_level_policy_file",
+           "load_level_policy", "finetune_level"]
 
 
 def _check_level(level: Any) -> str:
@@ -102,30 +104,59 @@ def find_bc_file(bc_dir: str | os.PathLike, level: str) -> Path:
                             f"(looked in ., policies/ and <epoch>/policies/)")
 
 
+def _read_pure_dict(path: Any) -> Mapping:
+    if not isinstance(path, (str, os.PathLike)) or not Path(path).is_file():
+        raise FileNotFoundError(f"path must name an existing policy file, got {path!r}")
+    with open(path, "rb") as f:
+        return pickle.load(f)
+
+
+def bc_policy_shape(path: str | os.PathLike) -> tuple[int, int, PolicyConfig]:
+    """``(obs_dim, action_dim, PolicyConfig)`` of a release ``.pkl`` file without building the policy ([P-7], [KE-10]).
+
+    Used to check options against the chunk size ``H`` before any training
+    starts. The file is unpickled: read only files you trust.
+    """
+    return infer_policy_shape(_read_pure_dict(path))
+
+
 def load_bc_policy(path: str | os.PathLike) -> FlowPolicy:
     """A :class:`FlowPolicy` from a release ``.pkl`` pure dict ([P-8]); architecture inferred from it.
 
     The file is unpickled: load only files you trust.
     """
-    if not isinstance(path, (str, os.PathLike)) or not Path(path).is_file():
-        raise FileNotFoundError(f"path must name an existing policy file, got {path!r}")
-    with open(path, "rb") as f:
-        pure = pickle.load(f)
+    pure = _read_pure_dict(path)
     obs_dim, action_dim, cfg = infer_policy_shape(pure)
     policy = FlowPolicy(obs_dim=obs_dim, action_dim=action_dim, config=cfg, rngs=nnx.Rngs(0))
     return load_pure_dict(policy, pure)
 
 
-def load_level_policy(policy_dir: str | os.PathLike, level: str) -> FlowPolicy:
-    """The policy of ``level`` in ``policy_dir`` ([KE-11]): a softrtc checkpoint ``<level>.npz``
-    (:func:`finetune_level`'s output) or else a release file (:func:`find_bc_file`)."""
+def find_level_policy_file(policy_dir: str | os.PathLike, level: str) -> Path:
+    """The file :func:`load_level_policy` reads for ``level`` ([KE-11]): ``<policy_dir>/<level>.npz``
+    when present, else the release file of :func:`find_bc_file`.
+
+    ``FileNotFoundError`` names both forms when neither exists; nothing is loaded.
+    """
     _check_level(level)
     d = _check_dir("policy_dir", policy_dir)
     ck = d / f"{level}.npz"
     if ck.is_file():
-        policy, _ = jckpt.load_checkpoint(ck)
+        return ck
+    try:
+        return find_bc_file(d, level)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no policy for level {level!r} in {d}: expected {level}.npz or a release "
+                                f"worlds_l_{level}.pkl in ., policies/ or <epoch>/policies/") from None
+
+
+def load_level_policy(policy_dir: str | os.PathLike, level: str) -> FlowPolicy:
+    """The policy of ``level`` in ``policy_dir`` ([KE-11]): a softrtc checkpoint ``<level>.npz``
+    (:func:`finetune_level`'s output) or else a release file (:func:`find_bc_file`)."""
+    path = find_level_policy_file(policy_dir, level)
+    if path.suffix == ".npz":
+        policy, _ = jckpt.load_checkpoint(path)
         return policy
-    return load_bc_policy(find_bc_file(d, level))
+    return load_bc_policy(path)
 
 
 def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level: str, method: str,
@@ -139,7 +170,9 @@ def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level
     window, default the paper's main setting [W-7]). Examples are the
     release's chunks ([K-16]..[K-19]); one epoch is ``floor(n / batch_size)``
     steps (at least one; the batch shrinks to ``n`` for tiny data). Delays
-    are drawn from ``delay_dist`` on ``0 .. d_max`` ([D-1], [D-2]). Writes
+    are drawn from ``delay_dist`` on ``0 .. d_max`` ([D-1], [D-2]); ``d_max`` and
+    ``execute_horizon`` are checked against the release policy's chunk size
+    ``H`` ([D-4]) before the expert data is read. Writes
     ``<out_dir>/<level>.npz`` with metadata (level, method, train config,
     source files, steps, final loss) and returns that metadata plus ``path``.
     """
@@ -151,19 +184,26 @@ def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level
     if window is not None and method != "soft":
         raise ValueError("window is only used with method='soft'")
     for name, val, lo, hi in (("epochs", epochs, 1, 1000), ("batch_size", batch_size, 1, 1 << 20),
-                              ("seed", seed, 0, 2**32 - 1)):
+                              ("seed", seed, 0, 2**32 - 1), ("d_max", d_max, 0, MAX_DELAY),
+                              ("execute_horizon", execute_horizon, 1, MAX_DELAY)):
         if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or not lo <= val <= hi:
             raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {val!r}")
     data_path = _check_dir("data_dir", data_dir) / kdata.expert_data_filename(level)
     bc_path = find_bc_file(bc_dir, level)
     if not isinstance(out_dir, (str, os.PathLike)):
         raise ValueError(f"out_dir must be a directory path, got {type(out_dir).__name__}")
-    data = kdata.load_expert_data(data_path)
+    if not data_path.is_file():
+        raise FileNotFoundError(f"data_dir {data_path.parent} has no {data_path.name}")
     policy = load_bc_policy(bc_path)
+    H = policy.action_chunk_size
+    for name, val in (("d_max", d_max), ("execute_horizon", execute_horizon)):
+        if val > H:  # [D-4]: no weights for a delay longer than the chunk; s <= H
+            raise ValueError(f"{name} must be an integer in [{0 if name == 'd_max' else 1}, {H}] "
+                             f"(the chunk size H of {bc_path.name}), got {val}")
+    data = kdata.load_expert_data(data_path)
     if (data.obs_dim, data.action_dim) != (policy.obs_dim, policy.action_dim):
         raise ValueError(f"expert data dims (obs {data.obs_dim}, action {data.action_dim}) differ from the policy's "
                          f"(obs {policy.obs_dim}, action {policy.action_dim}) for level {level!r}")
-    H = policy.action_chunk_size
     obs, chunks, _ = kdata.make_training_examples(data, H)
     n = obs.shape[0]
     bs = min(batch_size, n)

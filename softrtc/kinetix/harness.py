@@ -51,6 +51,7 @@ from softrtc.reference import weights as ref_weights
 from softrtc.reference.methods import METHODS
 
 from . import env as kenv
+from .limits import EPISODE_STEPS_MAX, EPISODE_STEPS_MIN, EPISODES_MAX, NUM_ENVS_MAX, REPEATS_MAX
 
 __all__ = [
     "EXECUTE_HORIZON",
@@ -385,9 +386,9 @@ class Rollout:
             raise ValueError(f"delays must be an integer array of shape ({self.num_envs},) with entries in "
                              f"[0, {hi}] ([X-1]), got {ds.dtype} {ds.shape} {ds.tolist()[:8]}")
         pad = self.padded - self.num_envs
-        if pad:
+        if pad:  # exact copies of env 0, key and delay ([KE-4]); their results are dropped
             keys = jnp.concatenate([keys, jnp.broadcast_to(keys[:1], (pad,))])
-            ds = np.concatenate([ds, np.zeros(pad, ds.dtype)])
+            ds = np.concatenate([ds, np.broadcast_to(ds[:1], (pad,))])
         level_state = _level_state(self.template, level)
         table = jnp.asarray(rollout_weight_table(spec, self.H, self.s))
         params = nnx.state(policy)
@@ -422,7 +423,8 @@ def make_rollout(task: kenv.KinetixTask, policy: FlowPolicy, family: str, num_en
     settings, noise and levels directory are used; the level itself is an
     argument of each call). ``family`` is ``"rtc"`` or ``"guided"``
     (:func:`method_family`). The rollout runs ``C = ceil(episode_steps / s)``
-    chunks. ``devices`` (default all) form the 1-D mesh of the env axis.
+    chunks; ``episode_steps`` lies in the range of ``EvalConfig.episode_steps``
+    ([KE-1]). ``devices`` (default all) form the 1-D mesh of the env axis.
     """
     if not isinstance(task, kenv.KinetixTask):
         raise ValueError(f"task must be a KinetixTask (softrtc.kinetix.env.make_env), got {type(task).__name__}")
@@ -436,7 +438,7 @@ def make_rollout(task: kenv.KinetixTask, policy: FlowPolicy, family: str, num_en
     H = policy.action_chunk_size
     s = _check_int("execute_horizon", execute_horizon, 1, H)
     T = _check_int("num_flow_steps", num_flow_steps, 1, 1024)
-    steps = _check_int("episode_steps", episode_steps, 1, 2**16)
+    steps = _check_int("episode_steps", episode_steps, EPISODE_STEPS_MIN, EPISODE_STEPS_MAX)
     devs = list(jax.devices()) if devices is None else list(devices)
     if not devs:
         raise ValueError("devices must be a non-empty sequence of JAX devices")
@@ -490,7 +492,7 @@ class EvalConfig:
     bootstrap_seed: int = 0
 
     def __post_init__(self):
-        levels = tuple(self.levels) if not isinstance(self.levels, str) else (self.levels,)
+        levels = _as_tuple("levels", self.levels, "distinct level names", single=(str,))
         if not levels or len(set(levels)) != len(levels):
             raise ValueError(f"levels must be a non-empty sequence of distinct level names, got {self.levels!r}")
         for lv in levels:
@@ -498,25 +500,39 @@ class EvalConfig:
                 raise ValueError(f"levels entries must be among {', '.join(kenv.LEVEL_NAMES)}, got {lv!r}")
         object.__setattr__(self, "levels", levels)
         meths = tuple(m if isinstance(m, MethodSpec) else parse_method(m) for m in
-                      ((self.methods,) if isinstance(self.methods, (str, MethodSpec)) else self.methods))
+                      _as_tuple("methods", self.methods, "distinct methods", single=(str, MethodSpec)))
         if not meths or len({m.label for m in meths}) != len(meths):
             raise ValueError(f"methods must be a non-empty sequence of distinct methods, got {self.methods!r}")
         object.__setattr__(self, "methods", meths)
         s = _check_int("execute_horizon", self.execute_horizon, 1, 1 << 12)
-        ds = tuple(self.delays)
+        ds = _as_tuple("delays", self.delays, f"distinct integers in [0, {s}]")
         if not ds or len(set(ds)) != len(ds):
-            raise ValueError(f"delays must be a non-empty sequence of distinct integers, got {self.delays!r}")
+            raise ValueError(f"delays must be a non-empty sequence of distinct integers in [0, {s}], "
+                             f"got {self.delays!r}")
         for d in ds:
             _check_int("delays entries", d, 0, s)
         object.__setattr__(self, "delays", tuple(int(d) for d in ds))
-        _check_int("episodes", self.episodes, 1, 1 << 16)
+        _check_int("episodes", self.episodes, 1, EPISODES_MAX)
         _check_int("num_flow_steps", self.num_flow_steps, 1, 1024)
-        _check_int("episode_steps", self.episode_steps, 3, 1 << 16)
+        _check_int("episode_steps", self.episode_steps, EPISODE_STEPS_MIN, EPISODE_STEPS_MAX)
         _check_int("seed", self.seed, 0, 2**32 - 1)
         _check_int("bootstrap_resamples", self.bootstrap_resamples, 1, 10**7)
         _check_int("bootstrap_seed", self.bootstrap_seed, 0, 2**32 - 1)
         if self.levels_dir is not None and not isinstance(self.levels_dir, (str, os.PathLike)):
             raise ValueError(f"levels_dir must be a path or None, got {type(self.levels_dir).__name__}")
+
+
+def _as_tuple(name: str, value: Any, what: str, single: tuple = ()) -> tuple:
+    """``value`` as a tuple ([N-7]): an instance of ``single`` is a one-entry sequence; any other
+    non-iterable (``delays=3``) or a string where a string is no entry is a ``ValueError`` naming ``name``."""
+    if single and isinstance(value, single):
+        return (value,)
+    if not isinstance(value, (str, bytes)):
+        try:
+            return tuple(value)
+        except TypeError:  # not iterable, e.g. a bare integer or a 0-d array
+            pass
+    raise ValueError(f"{name} must be a non-empty sequence of {what}, got {value!r}")
 
 
 def _resolve_policy(policies, spec: MethodSpec, level: str) -> FlowPolicy:
@@ -540,7 +556,9 @@ def evaluate(config: EvalConfig, policies, *, progress: bool = True, log=None) -
     ``policies`` is a :class:`FlowPolicy` used for every method and level, a
     mapping level -> policy, or a callable ``(spec, level) -> FlowPolicy``
     (e.g. base checkpoints for naive / inference methods and fine-tuned ones
-    for training-time methods). Each (method, level) is one call of the
+    for training-time methods), called once per (method, level): every policy
+    is resolved and checked (dims, ``s <= H``, delays ``<= min(s, H - s)``)
+    before the first rollout ([KE-11]). Each (method, level) is one call of the
     family's compiled rollout with ``episodes * len(delays)`` envs; episode
     ``e`` uses the key of :func:`episode_keys` at every delay. Every row of
     ``episodes`` is one episode: method, level, delay, episode, return,
@@ -555,6 +573,25 @@ def evaluate(config: EvalConfig, policies, *, progress: bool = True, log=None) -
     E, ds = config.episodes, config.delays
     n = E * len(ds)
     delays = np.repeat(np.asarray(ds, np.int64), E)
+    # Every (method, level) policy is resolved and checked before the first rollout, so a missing
+    # policy or a delay its chunk cannot hold stops the run before any work, not hours into it.
+    pols: dict = {}
+    for spec in config.methods:
+        for level in config.levels:
+            pol = _resolve_policy(policies, spec, level)
+            if (pol.obs_dim, pol.action_dim) != (template.obs_dim, template.action_dim):
+                raise ValueError(f"policies must have obs_dim={template.obs_dim} and action_dim="
+                                 f"{template.action_dim} (the levels'), got {pol.obs_dim} and {pol.action_dim} "
+                                 f"for method {spec.label!r} and level {level!r}")
+            if not 1 <= config.execute_horizon <= pol.action_chunk_size:
+                raise ValueError(f"execute_horizon must lie in [1, {pol.action_chunk_size}] (the chunk size H of the "
+                                 f"policy of method {spec.label!r} and level {level!r}), got {config.execute_horizon}")
+            hi = min(config.execute_horizon, pol.action_chunk_size - config.execute_horizon)
+            if max(ds) > hi:
+                raise ValueError(f"delays must lie in [0, {hi}] for H={pol.action_chunk_size}, "
+                                 f"s={config.execute_horizon} ([X-1]), got {max(ds)} "
+                                 f"(policy of method {spec.label!r} and level {level!r})")
+            pols[(spec.label, level)] = pol
     rollouts: dict = {}
     compile_s: dict = {}
     rows: list[dict] = []
@@ -562,12 +599,8 @@ def evaluate(config: EvalConfig, policies, *, progress: bool = True, log=None) -
     with tqdm(total=total, desc="eval", disable=not progress, file=sys.stderr) as bar:
         for spec in config.methods:
             for level in config.levels:
-                pol = _resolve_policy(policies, spec, level)
+                pol = pols[(spec.label, level)]
                 fam = method_family(spec.method)
-                hi = min(config.execute_horizon, pol.action_chunk_size - config.execute_horizon)
-                if max(ds) > hi:
-                    raise ValueError(f"delays must lie in [0, {hi}] for H={pol.action_chunk_size}, "
-                                     f"s={config.execute_horizon} ([X-1]), got {max(ds)}")
                 rkey = (fam, pol.obs_dim, pol.action_dim, pol.config)
                 if rkey not in rollouts:
                     rollouts[rkey] = make_rollout(template, pol, fam, n, config.execute_horizon,
@@ -735,9 +768,9 @@ def bench_harness(level: str = "grasp_easy", num_envs: int = 64, method: str = "
     """
     if level not in kenv.LEVEL_NAMES:
         raise ValueError(f"level must be one of {', '.join(kenv.LEVEL_NAMES)}, got {level!r}")
-    num_envs = _check_int("num_envs", num_envs, 1, 1 << 16)
+    num_envs = _check_int("num_envs", num_envs, 1, NUM_ENVS_MAX)
     seed = _check_int("seed", seed, 0, 2**32 - 1)
-    repeats = _check_int("repeats", repeats, 1, 100)
+    repeats = _check_int("repeats", repeats, 1, REPEATS_MAX)
     spec = parse_method(method) if isinstance(method, str) else method
     if not isinstance(spec, MethodSpec):
         raise ValueError(f"method must be a method string or MethodSpec, got {type(method).__name__}")

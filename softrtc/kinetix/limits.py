@@ -1,0 +1,23 @@
+"""Ranges shared by the Kinetix library and ``softrtc kinetix`` ([KE-1], [KE-9], [KE-12], [N-11]).
+
+One constant per bound, read by the library's validation and by the
+command line's option types, so an option accepts exactly the values the call
+it feeds accepts. NumPy and JAX are not imported: the CLI builds its parser
+from these without loading either.
+
+>>> EPISODES_MAX, REPEATS_MAX, EPISODE_STEPS_MIN
+(65536, 100, 1)
+"""
+
+from __future__ import annotations
+
+__all__ = ["EPISODES_MAX", "EPISODE_STEPS_MIN", "EPISODE_STEPS_MAX", "NUM_ENVS_MAX", "REPEATS_MAX"]
+
+# [KE-1] episodes per (level, delay, method): EvalConfig.episodes and ``eval --episodes``.
+EPISODES_MAX = 1 << 16
+# [KE-1] control steps per episode: EvalConfig.episode_steps and make_rollout's episode_steps.
+EPISODE_STEPS_MIN = 1
+EPISODE_STEPS_MAX = 1 << 16
+# [KE-9] bench_harness num_envs / repeats and ``bench --num-envs`` / ``--repeats``.
+NUM_ENVS_MAX = 1 << 16
+REPEATS_MAX = 100
