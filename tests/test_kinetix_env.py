@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SHARED_LEVELS_REASON
 
 from softrtc.kinetix import data as kdata
 
@@ -30,9 +31,13 @@ def _have_kinetix() -> bool:
     return True
 
 
-needs_env = pytest.mark.skipif(
-    not (_have_kinetix() and SHARED_LEVELS.is_dir()), reason="needs kinetix-env and ../shared/kinetix-levels"
-)
+_needs_kinetix = pytest.mark.skipif(not _have_kinetix(), reason="needs kinetix-env")
+_needs_levels = pytest.mark.skipif(not SHARED_LEVELS.is_dir(), reason=SHARED_LEVELS_REASON)
+
+
+def needs_env(fn):
+    """A missing package and missing levels skip with different reasons (only the latter is tolerated)."""
+    return _needs_kinetix(_needs_levels(fn))
 
 
 # ----------------------------------------------------------------------------
@@ -161,6 +166,12 @@ def test_argument_validation(task):
         kenv.make_env("grasp_easy", levels_dir=3)
     with pytest.raises(ValueError, match="key"):
         task.reset(0)
+    with pytest.raises(ValueError, match="key must be a JAX PRNG key"):
+        kenv.random_actions(0, (2,))
+    with pytest.raises(ValueError, match="shape entry"):
+        kenv.random_actions(jax.random.key(0), (2, 0))
+    a = kenv.random_actions(jax.random.key(0), (3,))
+    assert a.shape == (3, 6) and float(a.min()) >= -1.0 and float(a[:, 4:].min()) >= 0.0
     with pytest.raises(ValueError, match="key"):
         task.reset(jnp.zeros(3, jnp.uint32))
     _, state = task.reset(jax.random.key(0))
@@ -194,8 +205,10 @@ def test_argument_validation(task):
 
 @pytest.fixture(scope="module")
 def task():
-    if not (_have_kinetix() and SHARED_LEVELS.is_dir()):
-        pytest.skip("needs kinetix-env and ../shared/kinetix-levels")
+    if not _have_kinetix():
+        pytest.skip("needs kinetix-env")
+    if not SHARED_LEVELS.is_dir():
+        pytest.skip(SHARED_LEVELS_REASON)
     from softrtc.kinetix import env as kenv
 
     return kenv.make_env("grasp_easy")

@@ -47,3 +47,14 @@ def test_every_requirement_id_is_named_by_a_test():
     docs = "\n".join(_test_docstrings().values())
     missing = [i for i in spec_ids() if not re.search(rf"(?<![A-Z-]){re.escape(i)}(?!\d)", docs)]
     assert not missing, f"requirement ids no test docstring names: {missing}"
+
+
+def test_only_the_missing_levels_skip_is_tolerated():
+    """With SOFTRTC_REQUIRE_ALL=1 a skip fails the run unless its reason is exactly the missing
+    benchmark levels; a missing package, or a reason that merely mentions ../shared, is not tolerated."""
+    from conftest import SHARED_LEVELS_REASON, tolerated_skip
+
+    assert tolerated_skip(("f.py", 3, f"Skipped: {SHARED_LEVELS_REASON}"))
+    assert not tolerated_skip(("f.py", 3, "Skipped: needs kinetix-env"))
+    assert not tolerated_skip(("f.py", 3, "Skipped: needs kinetix-env and ../shared/kinetix-levels"))
+    assert not tolerated_skip(("f.py", 3, "Skipped: could not import 'kinetix': No module named 'kinetix'"))

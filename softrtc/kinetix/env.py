@@ -369,7 +369,13 @@ def make_env(
 
 
 def random_actions(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
-    """Uniform actions: motors in [-1, 1], thrusters in [0, 1] (kinetix's ranges)."""
+    """Uniform actions ``[*shape, 6]``: motors in [-1, 1], thrusters in [0, 1] (kinetix's ranges)."""
+    if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+                                            or (key.dtype == jnp.uint32 and key.shape == (2,)))):
+        raise ValueError(f"key must be a JAX PRNG key (jax.random.key or jax.random.PRNGKey), got {key!r}")
+    if not isinstance(shape, (tuple, list)):
+        raise ValueError(f"shape must be a tuple of integers >= 1, got {shape!r}")
+    shape = tuple(_check_int("shape entry", n, 1) for n in shape)
     a = jax.random.uniform(key, (*shape, ACTION_DIM), minval=-1.0, maxval=1.0)
     return a.at[..., NUM_MOTOR_BINDINGS:].set(jnp.abs(a[..., NUM_MOTOR_BINDINGS:]))
 
