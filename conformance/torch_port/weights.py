@@ -23,6 +23,10 @@ def endpoint(rule: dict, d: int) -> int:
     if not isinstance(rule, dict):
         raise ValueError("rule must be a dict with a 'kind'")
     kind = choice("rule.kind", rule.get("kind"), ("delay_scaled", "offset", "fixed", "hard"))
+    used = {"delay_scaled": ("lam", "h_max"), "offset": ("length", "h_max"), "fixed": ("length",), "hard": ()}[kind]
+    for name in ("lam", "h_max", "length"):  # [E-1]: a parameter the rule does not have must be absent
+        if name not in used and rule.get(name) is not None:
+            raise ValueError(f"{name} is not a parameter of the {kind!r} rule")
     d = integer("d", d, 0, MAX_WINDOW)
     if kind == "delay_scaled":
         lam = real("lam", rule.get("lam"), 0.0, MAX_WINDOW)
@@ -83,10 +87,11 @@ def soft_weights(H: int, d: int, window: dict, s=None) -> torch.Tensor:
         raise ValueError(f"window endpoint bound (h_max or h) must be <= H={H}, got {bound}")
     e = endpoint(rule, d)
     e_star = max(min(e, H), d)  # [W-2]: the committed prefix stays clamped when e < d
+    if s is not None:
+        s = integer("s", s, 1, H)  # checked whenever given, also where "zeros" leaves it unused
     if overflow == "clip":
         if s is None:
             raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
-        s = integer("s", s, 1, H)
         e_star = max(d, min(e_star, H - s))  # [W-6]: no window past the previous chunk's end
     return prefix_weights(H, d, e_star, schedule, par)
 

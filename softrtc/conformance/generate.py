@@ -128,6 +128,16 @@ def gen_endpoints() -> _Cases:
     c.error("E.endpoint.reject.lam-too-large", "endpoint", ["E-1", "N-7"],
             {"rule": {"kind": "delay_scaled", "lam": 5000.0, "h_max": 5}, "d": 1})
     c.error("E.endpoint.reject.unknown-kind", "endpoint", ["E-1", "N-7"], {"rule": {"kind": "quadratic"}, "d": 1})
+    c.error("E.endpoint.reject.unused-parameter", "endpoint", ["E-1", "N-7"],
+            {"rule": {"kind": "hard", "lam": 2.0}, "d": 1})
+    c.error("E.endpoint.reject.d-above-range", "endpoint", ["E-1", "N-12", "N-7"],
+            {"rule": endpoints.hard().to_dict(), "d": 4097})
+    # An integer-written lam is the same real ([CF-23]); offset and fixed rules give e(0) = 0 ([E-6]).
+    c.add("E.endpoint.integer-lam", "endpoint", ["E-2"], TOL_EXACT,
+          {"rule": {"kind": "delay_scaled", "lam": 2, "h_max": 5}, "d": 2}, {"e": 4})
+    for rule in (endpoints.offset(3, 8), endpoints.fixed(5)):
+        c.add(f"E.endpoint.{rule.kind}.d0", "endpoint", ["E-3" if rule.kind == "offset" else "E-4", "E-6"],
+              TOL_EXACT, {"rule": rule.to_dict(), "d": 0}, {"e": 0})
     return c
 
 
@@ -186,6 +196,9 @@ def gen_weights() -> _Cases:
             {"H": 8, "d": 3, "e": 2, "schedule": "linear", "parametrization": "rtc"})
     c.error("W.prefix_weights.reject.e-above-H", "prefix_weights", ["W-1", "N-7"],
             {"H": 8, "d": 3, "e": 9, "schedule": "linear", "parametrization": "rtc"})
+    zeros = dict(default, overflow="zeros")
+    c.error("W.weights.reject.s-above-H-under-zeros", "weights", ["W-6", "N-7"],
+            {"H": 8, "d": 2, "window": zeros, "s": 9})
     return c
 
 
@@ -212,6 +225,14 @@ def gen_delays() -> _Cases:
             {"dist": "exponential", "d_min": 0, "d_max": 2, "decay": -1.0})
     c.error("D.sample_delay.reject.u-one", "sample_delay", ["D-3", "N-7"],
             {"probs": [0.5, 0.5], "d_min": 0, "u": 1.0})
+    c.error("D.sample_delay.reject.sum-not-one", "sample_delay", ["D-3", "N-7"],
+            {"probs": [0.5, 0.49], "d_min": 0, "u": 0.3})
+    c.error("D.sample_delay.reject.negative-entry", "sample_delay", ["D-3", "N-7"],
+            {"probs": [1.5, -0.5], "d_min": 0, "u": 0.3})
+    c.error("D.sample_delay.reject.beyond-range", "sample_delay", ["D-3", "N-12", "N-7"],
+            {"probs": [0.5, 0.5], "d_min": 4096, "u": 0.3})
+    c.error("D.delay_probs.reject.bad-decay-uniform", "delay_probs", ["D-2", "N-7"],
+            {"dist": "uniform", "d_min": 0, "d_max": 2, "decay": -1.0})
     return c
 
 
@@ -347,6 +368,14 @@ def gen_sampler() -> tuple[_Cases, dict]:
             {"field": "h8a2", "obs": obs, "noise": noise, "prior": prior, "weights": np.zeros(8), "T": 0})
     c.error("S.method_weights.reject.d-above-overlap", "method_weights", ["S-6", "X-1", "N-7"],
             {"method": "train_hard", "H": 8, "s": 6, "d": 3, "window": None})
+    # also bounds d by s for the inference methods, though guidance_weights(8, 2, 3) is defined ([G-1]).
+    c.error("S.method_weights.reject.inference-d-above-s", "method_weights", ["S-6", "S-8", "X-1", "G-1", "N-7"],
+            {"method": "inference_hard", "H": 8, "s": 2, "d": 3, "window": None})
+    c.error("S.method_weights.reject.window-too-long", "method_weights", ["S-8", "E-1", "N-7"],
+            {"method": "naive", "H": 4, "s": 2, "d": 1, "window": SoftWindow().to_dict()})
+    c.add("S.method_weights.h4.default-window-unused", "method_weights", ["S-6", "S-8"], TOL_WEIGHTS,
+          {"method": "train_hard", "H": 4, "s": 2, "d": 1, "window": None},
+          {"weights": methods.method_weights("train_hard", 4, 2, 1)})
     return c, {"fields": _field_header()}
 
 
@@ -451,6 +480,13 @@ def gen_metrics() -> _Cases:
             {"actions": [[0.0], [1.0]], "order": 2})
     c.error("M.boundary_jump.reject.no-switch", "boundary_jump", ["M-3", "N-7"],
             {"actions": [[0.0], [1.0]], "chunk_index": [0, 0]})
+    c.error("M.boundary_jump.reject.float-chunk-index", "boundary_jump", ["M-3", "N-7"],
+            {"actions": [[0.0], [1.0]], "chunk_index": [0.0, 1.5]})
+    c.error("M.standard_error.reject.one-value", "standard_error", ["M-6", "N-7"], {"values": [1.0]})
+    vals = [0.1, 0.5, 0.9]
+    for conf in (0.0, 1.0):
+        c.error(f"M.bootstrap_interval.reject.confidence{conf}", "bootstrap_interval", ["M-5", "N-7"],
+                {"values": vals, "indices": [[0, 1, 2]], "confidence": conf})
     return c
 
 

@@ -94,6 +94,9 @@ def _req_key(rid: str):
     return (m.group(1), int(m.group(2))) if m else (rid, 0)
 
 
+TRACE_NOT_PROVIDED = "trace not provided; chunk checked only"
+
+
 class VectorError(Exception):
     """The vector directory is missing or holds files this runner cannot read."""
 
@@ -363,7 +366,7 @@ def check_outputs(fn: Fn, fname: str, got: dict, expected: dict, tol: dict) -> t
     for k in fn.outputs:
         if k == "trace":
             if got.get("trace") is None:
-                note = "trace not provided; chunk checked only"
+                note = TRACE_NOT_PROVIDED
                 continue
             tr, want = got["trace"], expected["trace"]
             if len(tr) != len(want):
@@ -502,6 +505,10 @@ def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> s
     if uns:
         lines.append("unsupported (adapter lacks the function): "
                      + ", ".join(f"{f} ({n} cases)" for f, n in sorted(uns.items())))
+    untraced = sum(1 for c in res.cases if c.status == "pass" and c.message == TRACE_NOT_PROVIDED)
+    if untraced:
+        lines.append(f"{untraced} sampler cases passed without a trace: their chunks are checked, their per-step "
+                     "values (blended state, denoised estimate, error, pull-back) are not ([CF-11])")
     fails = [c for c in res.cases if c.status == "fail"]
     if fails:
         lines.append(f"failures ({len(fails)}; first {min(len(fails), max_failures)} shown):")
