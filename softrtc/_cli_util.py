@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -83,6 +84,14 @@ def _writable(text: str, folder: Path) -> str:
     base = _first_existing(folder)
     if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
         raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} is not a writable directory")
+    # os.access trusts permission bits (and root passes them everywhere, /proc included); creating a
+    # scratch file is the test that holds on every file system.
+    try:
+        with tempfile.TemporaryFile(dir=base):
+            pass
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} does not take new files "
+                                         f"({exc.strerror or exc})") from None
     return text
 
 

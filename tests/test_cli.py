@@ -58,6 +58,11 @@ def test_output_and_input_paths_are_checked_up_front(tmp_path):
         with pytest.raises(argparse.ArgumentTypeError):
             parse(bad)
     assert not (tmp_path / "new").exists()  # checking creates nothing
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]  # nor leaves a scratch file behind
+    # A folder whose permission bits allow writing but which takes no files (root passes os.access on /proc).
+    if Path("/proc").is_dir():
+        with pytest.raises(argparse.ArgumentTypeError, match="does not take new files"):
+            cu.output_file()("/proc/softrtc-report.json")
 
 
 @pytest.mark.parametrize("argv, word", [
