@@ -102,10 +102,8 @@ def _checked(rule: EndpointRule) -> EndpointRule:
         v.real_value("rule.lam", float(rule.lam), 0.0, float(MAX_WINDOW))
         v.int_value("rule.h_max", rule.h_max, 0, MAX_WINDOW)
         v.int_value("rule.length", rule.length, 0, MAX_WINDOW)
-        used = {"delay_scaled": ("lam", "h_max"), "offset": ("length", "h_max"), "fixed": ("length",),
-                "hard": ()}[rule.kind]
         for name in ("lam", "h_max", "length"):
-            if name not in used and float(getattr(rule, name)) != 0:
+            if name not in _ref.RULE_PARAMETERS[rule.kind] and float(getattr(rule, name)) != 0:
                 raise ValueError(f"rule.{name} is not a parameter of the {rule.kind!r} rule and must be 0, "
                                  f"got {getattr(rule, name)}")
     return rule

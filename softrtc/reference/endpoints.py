@@ -22,6 +22,9 @@ from fractions import Fraction
 from ._validate import check_choice, check_int, check_real
 
 RULES = ("delay_scaled", "fixed", "offset", "hard")
+# [E-1] The parameters each rule has; the others must be absent.
+RULE_PARAMETERS = {"delay_scaled": ("lam", "h_max"), "offset": ("length", "h_max"), "fixed": ("length",),
+                   "hard": ()}
 
 # Upper bound on h_max, L and h; far above any chunk horizon used in practice,
 # it keeps vector files and JAX tables finite.
@@ -51,10 +54,8 @@ class EndpointRule:
             check_int("h_max", self.h_max, 0, MAX_WINDOW)
         elif self.kind == "fixed":
             check_int("length", self.length, 0, MAX_WINDOW)
-        used = {"delay_scaled": ("lam", "h_max"), "offset": ("length", "h_max"), "fixed": ("length",),
-                "hard": ()}[self.kind]
         for name in ("lam", "h_max", "length"):
-            if name not in used and getattr(self, name) is not None:
+            if name not in RULE_PARAMETERS[self.kind] and getattr(self, name) is not None:
                 raise ValueError(f"{name} is not a parameter of the {self.kind!r} rule and must be None, "
                                  f"got {getattr(self, name)!r}")
 
