@@ -444,11 +444,14 @@ def test_config_geometry_is_checked_at_construction():
              (dict(object_x_range=(-0.1, 0.1)), r"^config\.object_x_range is too narrow"),
              (dict(object_x_range=(-0.74, 0.18)), r"^config\.object_x_range must keep every part on the table"),
              (dict(box_centers=(-0.70, 0.32)), r"^config\.box_centers\[0\] .* off the table"),
+             # On the table at its nominal centre, off it once jittered by 0.02: the margin counts jitter.
+             (dict(box_centers=(-0.63, 0.32)), r"^config\.box_centers\[0\] .* off the table"),
              (dict(box_centers=(-0.34, 0.70)), r"^config\.box_centers\[1\] .* off the table"),
              (dict(box_centers=(0.20, 0.32)), r"^config\.box_centers .* overlap")]
     for fields, msg in cases:
         with pytest.raises(ValueError, match=msg):
             ArmConfig(**fields)
+    ArmConfig(box_centers=(-0.619, 0.32))  # on the table for every jitter draw
     # Without the check, home_ee below the table is a valid IK target: the rule is the config's, not IK's.
     assert inverse_kinematics(np.array([0.0, -0.02]))[1] <= 0
     # The narrowest range that admits a placement: widest parts at the ends, three gaps ([A-5]).
@@ -520,6 +523,13 @@ def test_grasp_reach_is_inclusive_and_ties_go_to_the_lowest_index():
     assert _part_below_tip(env, 0, 0.005) == d1
     _, info = env.step(np.concatenate([env.joint_positions(), [1.0]]))
     assert info["holding"] == 0
+    # Both within reach, the nearer wins even with the higher index (not the first found).
+    env = ArmSortEnv()
+    env.reset(0)
+    far, near = _part_below_tip(env, 0, 0.010), _part_below_tip(env, 1, 0.002)
+    assert near < far < env.config.grasp_radius
+    _, info = env.step(np.concatenate([env.joint_positions(), [1.0]]))
+    assert info["holding"] == 1
 
 
 def test_kinematics_and_expert_reject_non_numbers():

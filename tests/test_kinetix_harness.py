@@ -212,7 +212,7 @@ def test_zero_delay_identical_for_training_samplers(setup):
 @pytest.mark.slow
 @needs_levels
 def test_guided_rollout_inference_methods(setup):
-    """KE-3, G-1, G-6, X-2, S-6, P-14: the guided family runs inference-time RTC in closed loop.
+    """KE-3, G-1, G-6, X-2, X-3, S-6, P-14: the guided family runs inference-time RTC in closed loop.
 
     The first chunk of every episode is the naive sampler: bitwise the guided program's own naive chunk
     (inference_hard at d = 0, W = 0, [G-6]) for every method and delay, and the training-time family's
@@ -234,6 +234,15 @@ def test_guided_rollout_inference_methods(setup):
     np.testing.assert_allclose(outs["inference_hard"]["chunks"][d0], naive["chunks"][d0], **tol)
     # Soft inpainting guides the whole overlap even at d = 0 ([G-1]): not naive after the first chunk.
     assert np.abs(outs["inference_soft"]["chunks"][d0][:, 1:] - naive["chunks"][d0][:, 1:]).max() > 1e-2
+
+    # Guidance pulls the new chunk's committed prefix toward the previous chunk shifted by s ([X-3]):
+    # far closer than naive chunks, which ignore it (measured: about 0.01 against about 1).
+    def prefix_gap(chunks):
+        gaps = [np.abs(chunks[e, c, :d] - chunks[e, c - 1, S:S + d]).mean()
+                for e, d in enumerate(delays) if d > 0 for c in range(1, chunks.shape[1])]
+        return float(np.mean(gaps))
+
+    assert prefix_gap(outs["inference_hard"]["chunks"]) < 0.1 * prefix_gap(naive["chunks"])
 
 
 @pytest.mark.slow

@@ -278,9 +278,14 @@ def test_implementation_ranges():
     with pytest.raises(ValueError, match="num_steps"):
         sampler.euler_times(65537)
     assert sampler.euler_times(65536).size == 65536
+    assert metrics.difference_norm(np.zeros((20, 1)), 16) == 0.0  # the largest order is allowed
     with pytest.raises(ValueError, match="order"):
         metrics.difference_norm(np.zeros((20, 1)), 17)
     with pytest.raises(ValueError, match="num_resamples"):
         metrics.bootstrap_indices(3, 10**7 + 1, 0)
+    # 10^7 resamples are allowed; the bound is checked before any drawing, so probe it with a bad seed.
+    with pytest.raises(ValueError, match="seed"):
+        metrics.bootstrap_indices(3, 10**7, -1)
+    assert endpoints.endpoint(endpoints.hard(), 4096) == 4096
     with pytest.raises(ValueError, match="d must be"):
         endpoints.endpoint(endpoints.hard(), 4097)
