@@ -266,3 +266,21 @@ def test_agreement_check_reports_a_disagreement(monkeypatch):
     bad = bench.check_agreement(config, policy, 1, names)
     for a in bad.values():
         assert not a["ok"] and a["max_abs_diff"] == pytest.approx(1e-3, rel=0.2)
+
+
+def test_agreement_checks_the_timed_delays(monkeypatch):
+    """B-5: the check runs at every delay the run times: 0 .. min(s, H - s) by default, only D
+    under --delay D."""
+    seen = []
+    honest = bench._agreement
+
+    def spy(rows, reference, state, inputs, delays):
+        seen.append([int(d) for d in delays])
+        return honest(rows, reference, state, inputs, delays)
+
+    monkeypatch.setattr(bench, "_agreement", spy)
+    config = bench.BenchConfig(**TINY)
+    policy = bench.make_policy(config)
+    bench.check_agreement(config, policy, 1, ("naive",))
+    bench.check_agreement(bench.BenchConfig(**TINY, delay=2), policy, 1, ("naive",))
+    assert seen == [[0, 1, 2, 3, 4], [2]]
