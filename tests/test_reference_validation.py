@@ -289,3 +289,136 @@ def test_implementation_ranges():
     assert endpoints.endpoint(endpoints.hard(), 4096) == 4096
     with pytest.raises(ValueError, match="d must be"):
         endpoints.endpoint(endpoints.hard(), 4097)
+
+
+def _raises_naming(fn, name):
+    with pytest.raises(ValueError) as info:
+        fn()
+    assert name in str(info.value), f"{name!r} not named in: {info.value}"
+
+
+def test_field_results_of_another_kind_are_rejected_not_converted():
+    """[N-7] A velocity or VJP the field returns as a complex, boolean or string array is an error, as an input
+    of that dtype would be; a real integer array is accepted and read as floats."""
+    def field_of(value):
+        return lambda obs, x, t: np.full(x.shape, value)
+
+    for value in (1 + 5j, True, "3.5"):
+        _raises_naming(lambda: sampler.naive_sample(field_of(value), np.zeros(3), np.zeros((4, 2)), 2), "dtype")
+    out = sampler.naive_sample(field_of(2), np.zeros(3), np.zeros((4, 2)), 2)
+    np.testing.assert_array_equal(out, np.full((4, 2), 2.0))
+
+
+def test_schedule_positions_are_checked_like_arrays():
+    """[W-3] [N-7] [N-12] schedule_value's positions x must be a non-empty real array in [0, 1]: booleans,
+    strings, complex numbers and empty arrays are rejected, not converted."""
+    for bad in ([True, False], ["0.25"], [], True, [0.5, "a"], np.array([0.5 + 1j])):
+        _raises_naming(lambda: weights.schedule_value("linear", bad), "x")
+    np.testing.assert_allclose(weights.schedule_value("linear", [0.25, 1]), [0.75, 0.0])
+    # An empty window (e = d) still gives the prefix and the tail.
+    assert weights.prefix_weights(4, 2, 2, "exp").tolist() == [1.0, 1.0, 0.0, 0.0]
+
+
+def test_horizon_and_delay_bounds():
+    """[N-12] H lies in [1, 4096], so every token index, endpoint and delay lies in [0, 4096]: larger values are
+    rejected with the argument named, where an unbounded H ran out of memory or accepted a delay of 4500."""
+    _raises_naming(lambda: weights.hard_weights(5000, 4500), "H")
+    _raises_naming(lambda: weights.hard_weights(10**30, 0), "H")
+    _raises_naming(lambda: weights.prefix_weights(4097, 0, 0), "H")
+    _raises_naming(lambda: weights.window_positions(0, 10**12), "e")
+    _raises_naming(lambda: weights.window_positions(5000, 5001), "d")
+    _raises_naming(lambda: executor.check_delay(10000, 5000, 4500), "H")
+    _raises_naming(lambda: guidance.guidance_prefix_weights(4097, 1, 0, "soft"), "H")
+    _raises_naming(lambda: metrics.is_high_delay(4097), "d")
+    _raises_naming(lambda: metrics.is_high_delay(10**30), "d")
+    _raises_naming(lambda: metrics.bootstrap_indices(10**30, 1, 0), "num_values")
+    _raises_naming(lambda: weights.check_weights("w", np.zeros(2), 2.0), "H")
+    _raises_naming(lambda: weights.check_weights("w", np.zeros(2), None), "H")
+    assert weights.hard_weights(4096, 4096).sum() == 4096
+    assert metrics.is_high_delay(4096) is False and metrics.is_high_delay(3) is True
+    # A table longer than the delay range is refused by its length, not by a misleading d_min range.
+    _raises_naming(lambda: delays.sample_delay(np.full(5000, 1 / 5000), 0, 0.5), "probs")
+
+
+def test_reals_too_large_for_a_float_are_value_errors():
+    """[N-7] A real argument given as an integer or Fraction beyond the float range raises ValueError naming it,
+    not OverflowError."""
+    from fractions import Fraction
+
+    _raises_naming(lambda: corruption.token_times([0.0], 10**400), "tau")
+    _raises_naming(lambda: endpoints.delay_scaled(Fraction(10**400, 3), 5), "lam")
+    _raises_naming(lambda: guidance.guidance_weight(0.5, 10**400), "max_guidance")
+
+
+def test_velocity_field_arguments():
+    """[F-3] [N-7] init's scale is a finite real > 0 (booleans rejected) and the constructor takes a dict."""
+    for bad in (True, None, "2", 0.0, -1.0, float("nan"), 10**400, 1 + 1j):
+        _raises_naming(lambda: ReferenceVelocityField.init(0, 4, 1, 2, 3, scale=bad), "scale")
+    for bad in (None, 3, ["W1"], "W1"):
+        _raises_naming(lambda: ReferenceVelocityField(bad), "params")
+    a, b = ReferenceVelocityField.init(0, 4, 1, 2, 3, scale=2.0), ReferenceVelocityField.init(0, 4, 1, 2, 3)
+    np.testing.assert_allclose(a.params["W1"], 2.0 * b.params["W1"])
+
+
+def test_endpoint_rule_stores_numpy_scalars_by_value():
+    """[E-1] [E-2] EndpointRule built directly with NumPy scalars stores them as Python numbers, so endpoint()
+    reads the value as delay_scaled() does, and returns a Python int."""
+    r = endpoints.EndpointRule("delay_scaled", np.float32(1.6), np.int64(16))
+    assert type(r.lam) is float and type(r.h_max) is int
+    assert r == endpoints.delay_scaled(np.float32(1.6), 16)
+    e = endpoints.endpoint(r, 5)
+    assert type(e) is int and e == math.ceil(float(np.float32(1.6)) * 5 - 1e-4)
+    o = endpoints.EndpointRule("offset", length=np.int64(2), h_max=np.int32(8))
+    assert type(o.length) is int and endpoints.endpoint(o, 3) == 5
+
+
+def test_trace_flag_is_a_bool():
+    """[N-7] return_trace is True or False: a truthy string or number is an error, not a request for a trace."""
+    f = ReferenceVelocityField.init(0, 4, 2, 3)
+    calls = (lambda v: sampler.naive_sample(f, OK["obs"], OK["noise"], 2, return_trace=v),
+             lambda v: sampler.rtc_sample(f, OK["obs"], OK["noise"], OK["prior"], OK["weights"], 2, return_trace=v),
+             lambda v: guidance.guided_sample(f, OK["obs"], OK["noise"], OK["prior"], OK["weights"], 2,
+                                              return_trace=v))
+    for call in calls:
+        for bad in ("no", 1, None, float("nan")):
+            _raises_naming(lambda: call(bad), "return_trace")
+        assert isinstance(call(True), tuple) and isinstance(call(np.bool_(False)), np.ndarray)
+
+
+def test_executor_delay_lists_name_the_bad_entry():
+    """[X-5] [N-7] delays must be a sequence with one executable delay per chunk; a bad entry is named by its
+    index, and a non-sequence is a ValueError, not a TypeError."""
+    chunks = np.zeros((3, 8, 1))
+    _raises_naming(lambda: executor.execute_chunks(chunks, [0, 2.0, 1], 4), "delays[1]")
+    _raises_naming(lambda: executor.execute_chunks(chunks, [0, 1, 5], 4), "delays[2]")
+    for bad in (None, True, 0, 0.5, "012"):
+        _raises_naming(lambda: executor.execute_chunks(chunks, bad, 4), "delays")
+        _raises_naming(lambda: executor.closed_loop(lambda o, p, d, c: np.zeros((8, 1)), lambda a: 0.0, 0.0, 3, 8,
+                                                    4, bad), "delays")
+    assert executor.execute_chunks(chunks, (0, 4, 0), 4)["actions"].shape == (12, 1)
+
+
+def test_metric_and_method_inputs():
+    """[M-3] [S-8] [N-7] An empty chunk_index and a ragged noise array raise ValueError naming the argument."""
+    from softrtc.reference.methods import generate_chunk
+
+    _raises_naming(lambda: metrics.switch_steps(np.array([], int)), "chunk_index")
+    _raises_naming(lambda: generate_chunk("naive", F, np.zeros(3), [[0.0], [0.0, 1.0]], None, 1, 0, 2), "noise")
+    assert metrics.switch_steps(np.array([0, 0, 1])).tolist() == [2]
+
+
+def test_conformance_api_arguments():
+    """[CF-13] [CF-5] [N-7] The runner's only is a collection of known function names (a string would match by
+    substring, an unknown name would run nothing); paths, JSON text, tolerances and file names are checked."""
+    from softrtc.conformance import generate, runner
+
+    _raises_naming(lambda: runner.run("reference", only="batch_loss"), "only")
+    _raises_naming(lambda: runner.run("reference", only={"bogus"}), "bogus")
+    _raises_naming(lambda: runner.run("reference", only=5), "only")
+    _raises_naming(lambda: runner.load_vectors(123), "directory")
+    _raises_naming(lambda: runner.parse_json(None), "text")
+    _raises_naming(lambda: runner.compare("x", np.zeros(2), [0.0, 0.0], {}), "tol")
+    _raises_naming(lambda: generate.render("bogus"), "name")
+    _raises_naming(lambda: generate.generate(123), "out_dir")
+    res = runner.run("reference", only=["batch_loss"])
+    assert res.cases and {c.function for c in res.cases} == {"batch_loss"}

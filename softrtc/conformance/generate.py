@@ -16,6 +16,7 @@ import argparse
 import hashlib
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -527,6 +528,8 @@ def _dumps(obj) -> str:
 
 def render(name: str) -> str:
     """Text of one vector file: header keys sorted, then one case per line ([CF-3])."""
+    if not isinstance(name, str) or name not in FILES:
+        raise ValueError(f"name must be one of the vector files {sorted(FILES)}, got {name!r}")
     chapter, title, fn = FILES[name]
     res = fn()
     cases, extra = (res if isinstance(res, tuple) else (res, {}))
@@ -543,6 +546,8 @@ def render(name: str) -> str:
 
 def generate(out_dir=None) -> dict:
     """Write every vector file and index.json into ``out_dir`` ([CF-1]); return {file: size in bytes}."""
+    if out_dir is not None and not isinstance(out_dir, (str, os.PathLike)):
+        raise ValueError(f"out_dir must be a path (str or os.PathLike), got {type(out_dir).__name__}")
     out = Path(out_dir) if out_dir is not None else DEFAULT_OUT
     if out.exists() and not out.is_dir():
         raise ValueError(f"out_dir must be a directory, got the file {out}")

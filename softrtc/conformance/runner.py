@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import sys
 import time
@@ -105,16 +106,25 @@ def _reject_constant(name: str):
     raise ValueError(f"{name} is not a JSON number (vector files hold finite numbers only, [CF-3])")
 
 
+def _path(name: str, value) -> Path:
+    """A str or os.PathLike argument as a Path ([N-7])."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise ValueError(f"{name} must be a path (str or os.PathLike), got {type(value).__name__}")
+    return Path(value)
+
+
 def parse_json(text: str):
     """JSON text to Python under the number convention of [CF-23]: a number written with a fraction or an
     exponent is a float, one written without is an int; NaN and Infinity are refused."""
+    if not isinstance(text, (str, bytes, bytearray)):
+        raise ValueError(f"text must be JSON text (str or bytes), got {type(text).__name__}")
     return json.loads(text, parse_float=float, parse_int=int, parse_constant=_reject_constant)
 
 
 def load_vectors(directory=None) -> list[dict]:
     """Read every vector file of ``directory`` (index.json excluded), checking format_version ([CF-2])
     and the structure of every case ([CF-24]); raise VectorError naming the first problem."""
-    d = Path(directory) if directory is not None else DEFAULT_VECTORS
+    d = _path("directory", directory) if directory is not None else DEFAULT_VECTORS
     if not d.is_dir():
         raise VectorError(f"vectors directory {d} {'is not a directory' if d.exists() else 'does not exist'}")
     files = sorted(p for p in d.glob("*.json") if p.name != "index.json")
@@ -324,6 +334,8 @@ def _normalize_trace(trace, fname, adapter, flipped) -> list:
 
 def compare(what: str, got: np.ndarray, want, tol: dict, integer: bool = False) -> float:
     """Worst |got - want| / (abs + rel |want|) ([CF-5]); raise CaseFailure when above 1."""
+    if not isinstance(tol, dict) or not {"abs", "rel"} <= set(tol):
+        raise ValueError(f"tol must be a dict with keys 'abs' and 'rel' ([CF-5]), got {tol!r}")
     w = np.asarray(want, dtype=np.float64)
     g = np.asarray(got)
     if g.dtype.kind not in "biuf":
@@ -444,6 +456,13 @@ def run(impl, vectors_dir=None, only=None, files=None) -> RunResult:
     anything but KeyboardInterrupt, SystemExit included, is a failed case ([CF-18]).
     """
     t0 = time.perf_counter()
+    if only is not None:
+        if isinstance(only, (str, bytes)) or not hasattr(only, "__iter__"):
+            raise ValueError(f"only must be None or a collection of interface function names, got {only!r}")
+        only = set(only)
+        unknown = sorted(str(f) for f in only if f not in INTERFACE)
+        if unknown:
+            raise ValueError(f"only names unknown interface functions {unknown}; known: {sorted(INTERFACE)}")
     if isinstance(impl, str):
         adapter, impl_name = load_adapter(impl), impl
     else:

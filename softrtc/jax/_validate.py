@@ -21,6 +21,9 @@ from softrtc.reference import _validate as _ref
 check_choice = _ref.check_choice
 check_int = _ref.check_int
 check_real = _ref.check_real
+check_horizon = _ref.check_horizon
+check_bool = _ref.check_bool
+MAX_HORIZON = _ref.MAX_HORIZON
 
 
 def is_traced(value) -> bool:

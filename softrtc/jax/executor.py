@@ -22,14 +22,14 @@ from . import _validate as v
 
 def check_delay(H: int, s: int, d) -> int:
     """[X-1] A concrete delay is executable when 0 <= d <= min(s, H - s); returns it as int."""
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
     return int(v.int_value("d", d, 0, min(s, H - s)))
 
 
 def check_delays(H: int, s: int, delays) -> np.ndarray:
     """Host-side check of a delay sequence for :func:`execute_chunks` ([X-1], [X-2]): d_0 = 0."""
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
     ds = np.asarray(delays)
     if ds.ndim != 1 or ds.size < 1:
@@ -114,7 +114,7 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
     """
     if not callable(generate) or not callable(env_step):
         raise ValueError("generate and env_step must be callables")
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
     if not v.is_traced(delays):
         check_delays(H, s, delays)  # on the caller's integers, before any cast to int32

@@ -34,7 +34,7 @@ def guidance_prefix_weights(H: int, s, d, variant: str) -> jax.Array:
     ``d`` in [0, H - s] may be traced (checked when concrete; traced values
     outside give undefined results).
     """
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     v.check_choice("variant", variant, tuple(GUIDANCE_SCHEDULES))
     s = v.int_value("s", s, 1, H)
     d = v.int_value("d", d, 0, H - int(s) if not v.is_traced(s) else H)

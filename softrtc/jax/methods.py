@@ -83,7 +83,7 @@ def method_weights(method: str, H: int, s: int, d, window=None) -> jax.Array:
     is resolved for train_soft only ([S-8]).
     """
     v.check_choice("method", method, METHODS)
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
     if window is not None or method == "train_soft":
         window = check_window(H, SoftWindow() if window is None else window)
@@ -100,7 +100,7 @@ def method_weight_table(method: str, H: int, s: int, window=None) -> jax.Array:
     training delays up to H use :func:`softrtc.jax.weights.weight_table`.)
     """
     v.check_choice("method", method, METHODS)
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
     return method_weights(method, H, s, jnp.arange(min(s, H - s) + 1, dtype=jnp.int32), window)
 

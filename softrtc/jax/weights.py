@@ -64,7 +64,7 @@ def window_positions(H: int, d, e, parametrization: str = "rtc") -> jax.Array:
     the static shape [H]; entries outside the window are clipped to [0, 1]
     and carry no meaning.
     """
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     v.check_choice("parametrization", parametrization, PARAMETRIZATIONS)
     d = v.int_value("d", d, 0, H)
     e = v.int_value("e", e, 0, H)
@@ -107,7 +107,7 @@ def prefix_weights(H: int, d, e, schedule: str = "linear", parametrization: str 
     outside this range give undefined results). ``H`` and the names are static;
     one compilation per ``H`` serves every delay, endpoint and variant.
     """
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     v.check_choice("schedule", schedule, SCHEDULES)
     v.check_choice("parametrization", parametrization, PARAMETRIZATIONS)
     d = v.int_value("d", d, 0, H)
@@ -125,7 +125,7 @@ def effective_endpoint(H: int, d, e, s=None, overflow: str = "clip") -> jax.Arra
     [W-6] overflow="clip" also caps at the overlap: e* = max(d, min(e*, H - s)).
     ``d``, ``e`` in [0, H] and ``s`` in [1, H] may be traced (checked when concrete).
     """
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     v.check_choice("overflow", overflow, OVERFLOWS)
     d = v.int_value("d", d, 0, H)
     e = v.int_value("e", e, 0, H)
@@ -183,7 +183,7 @@ def check_window(H: int, window) -> SoftWindow:
 
     Called by :func:`soft_weights` when the rule's parameters are concrete.
     """
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     window = from_reference(window)
     bound = window.rule.bound()
     if bound is not None and not v.is_traced(bound) and int(bound) > H:
@@ -228,7 +228,7 @@ def soft_weights(H: int, d, window=None, s=None) -> jax.Array:
     >>> soft_weights(8, 3, SoftWindow(), s=4).round(3).tolist()
     [1.0, 1.0, 1.0, 0.5, 0.0, 0.0, 0.0, 0.0]
     """
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     window = check_window(H, SoftWindow() if window is None else window)
     d = v.int_value("d", d, 0, H)
     s = _check_s(H, window, s)
@@ -239,7 +239,7 @@ def soft_weights(H: int, d, window=None, s=None) -> jax.Array:
 
 def hard_weights(H: int, d) -> jax.Array:
     """Hard RTC weights 1[j < d] ([W-8]); ``d`` in [0, H] may be traced."""
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     d = v.int_value("d", d, 0, H)
     return (jnp.arange(H) < d).astype(jnp.float32)
 
@@ -251,7 +251,7 @@ def weight_table(H: int, window=None, s=None) -> jax.Array:
     table itself depends only on the window and ``s``. One compilation per
     ``H`` serves every window and ``s``.
     """
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     window = check_window(H, SoftWindow() if window is None else window)
     s = _check_s(H, window, s)
     kind, scode, pcode, ocode = (jnp.int32(c) for c in _codes(window))
@@ -267,7 +267,7 @@ def _weight_table(H, kind, lam, h_max, length, scode, pcode, ocode, s):
 
 def check_weights(name: str, w, H: int) -> jax.Array:
     """A weight vector [..., H] with values in [0, 1] (range checked when concrete) ([W-1])."""
-    H = v.check_int("H", H, 1)
+    H = v.check_horizon(H)
     w = v.array(name, w, lo=0.0, hi=1.0)
     if w.ndim < 1 or w.shape[-1] != H:
         raise ValueError(f"{name} must have shape [..., {H}], got {list(w.shape)}")

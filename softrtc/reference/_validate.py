@@ -12,6 +12,9 @@ import numbers
 
 import numpy as np
 
+# [N-12] Chunk length H (and so every token index and delay d <= H) lies in [1, MAX_HORIZON].
+MAX_HORIZON = 4096
+
 
 def check_int(name: str, value, lo: int | None = None, hi: int | None = None) -> int:
     """Return ``value`` as ``int`` if it is an integer in ``[lo, hi]`` ([N-7])."""
@@ -23,12 +26,21 @@ def check_int(name: str, value, lo: int | None = None, hi: int | None = None) ->
     return v
 
 
+def check_horizon(H) -> int:
+    """The chunk length ``H``: an integer in [1, MAX_HORIZON] ([N-1], [N-12])."""
+    return check_int("H", H, 1, MAX_HORIZON)
+
+
 def check_real(name: str, value, lo: float | None = None, hi: float | None = None,
                lo_open: bool = False, hi_open: bool = False) -> float:
     """Return ``value`` as ``float`` if finite and within the given bounds ([N-7])."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (numbers.Real, np.floating, np.integer)):
         raise ValueError(f"{name} must be a finite real number{_rrange(lo, hi, lo_open, hi_open)}, got {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an int or Fraction beyond the float range
+        raise ValueError(f"{name} must be a finite real number{_rrange(lo, hi, lo_open, hi_open)}, "
+                         f"got a value too large for a float") from None
     bad = not math.isfinite(v)
     if lo is not None:
         bad |= v <= lo if lo_open else v < lo
@@ -37,6 +49,13 @@ def check_real(name: str, value, lo: float | None = None, hi: float | None = Non
     if bad:
         raise ValueError(f"{name} must be a finite real number{_rrange(lo, hi, lo_open, hi_open)}, got {v!r}")
     return v
+
+
+def check_bool(name: str, value) -> bool:
+    """Return ``value`` if it is a bool (Python or NumPy) ([N-7]); truthy stand-ins are rejected."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
 
 
 def check_choice(name: str, value, choices) -> str:

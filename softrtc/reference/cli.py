@@ -40,8 +40,8 @@ def _rule_from_args(args):
 
 def weights_table(H: int, s: int, window: SoftWindow, delays=None) -> str:
     """Text table of the soft weights for each delay ([W-7])."""
-    from ._validate import check_int
-    H = check_int("H", H, 1)
+    from ._validate import check_horizon, check_int
+    H = check_horizon(H)
     s = check_int("s", s, 1, H)
     delays = range(0, min(s, H - s) + 1) if delays is None else delays
     lines = [f"H={H} s={s} window={json.dumps(window.to_dict())}",

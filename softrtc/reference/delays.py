@@ -53,6 +53,9 @@ def sample_delay(probs, d_min: int, u: float) -> int:
     """Inverse-CDF draw ([D-3]): d = d_min + #{k : cdf[k] <= u}, for u in [0, 1)."""
     c = delay_cdf(probs)
     # The table spans d_min .. d_min + n - 1, which must stay within [D-1]'s range.
+    if c.size > MAX_DELAY + 1:
+        raise ValueError(f"probs must have at most {MAX_DELAY + 1} entries (delays 0 .. {MAX_DELAY}), "
+                         f"got {c.size}")
     d_min = check_int("d_min", d_min, 0, MAX_DELAY - c.size + 1)
     u = check_real("u", u, 0.0, 1.0, hi_open=True)
     return d_min + int(np.sum(c <= u))

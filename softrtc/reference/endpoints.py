@@ -46,18 +46,19 @@ class EndpointRule:
 
     def __post_init__(self):
         check_choice("kind", self.kind, RULES)
-        if self.kind == "delay_scaled":
-            check_real("lam", self.lam, lo=0.0, hi=float(MAX_WINDOW))
-            check_int("h_max", self.h_max, 0, MAX_WINDOW)
-        elif self.kind == "offset":
-            check_int("length", self.length, 0, MAX_WINDOW)
-            check_int("h_max", self.h_max, 0, MAX_WINDOW)
-        elif self.kind == "fixed":
-            check_int("length", self.length, 0, MAX_WINDOW)
         for name in ("lam", "h_max", "length"):
             if name not in RULE_PARAMETERS[self.kind] and getattr(self, name) is not None:
                 raise ValueError(f"{name} is not a parameter of the {self.kind!r} rule and must be None, "
                                  f"got {getattr(self, name)!r}")
+        # Parameters are stored as Python float / int, so a NumPy scalar given here (np.float32(1.6),
+        # np.int64(5)) is read by its value, as delay_scaled() reads it.
+        for name in RULE_PARAMETERS[self.kind]:
+            value = getattr(self, name)
+            if name == "lam":
+                value = check_real("lam", value, lo=0.0, hi=float(MAX_WINDOW))
+            else:
+                value = check_int(name, value, 0, MAX_WINDOW)
+            object.__setattr__(self, name, value)
 
     def bound(self) -> int:
         """Largest endpoint the rule can return for any d (used to check e <= H)."""

@@ -19,14 +19,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_int
+from ._validate import check_array, check_horizon, check_int
 
 
 def check_delay(H: int, s: int, d: int) -> int:
     """[X-1] A delay is executable when 0 <= d <= min(s, H - s)."""
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     s = check_int("s", s, 1, H)
     return check_int("d", d, 0, min(s, H - s))
+
+
+def _delays(delays, C: int, H: int, s: int) -> list:
+    """The delays of C chunks: delays[0] = 0 ([X-2]), every later one executable ([X-1], [X-5])."""
+    if isinstance(delays, (str, bytes)) or not hasattr(delays, "__iter__"):
+        raise ValueError(f"delays must be a sequence of {C} integers (one per chunk), got {type(delays).__name__}")
+    ds = list(delays)
+    if len(ds) != C:
+        raise ValueError(f"delays must have one entry per chunk ({C}), got {len(ds)}")
+    out = [check_int("delays[0]", ds[0], 0, 0)]
+    for c in range(1, C):
+        out.append(check_int(f"delays[{c}]", ds[c], 0, min(s, H - s)))
+    return out
 
 
 def shift_prior(prev_chunk, s: int) -> np.ndarray:
@@ -57,10 +70,7 @@ def execute_chunks(chunks, delays, s: int) -> dict:
     if C < 1:
         raise ValueError("chunks must hold at least one chunk, got 0")
     s = check_int("s", s, 1, H)
-    ds = list(delays)
-    if len(ds) != C:
-        raise ValueError(f"delays must have one entry per chunk ({C}), got {len(ds)}")
-    check_int("delays[0]", ds[0], 0, 0)
+    ds = _delays(delays, C, H, s)
     actions, src_c, src_j = [ch[0, :s]], [np.zeros(s, int)], [np.arange(s)]
     for c in range(1, C):
         d = check_delay(H, s, ds[c])
@@ -83,12 +93,9 @@ def closed_loop(generate, env_step, obs0, num_chunks: int, H: int, s: int, delay
     if not callable(generate) or not callable(env_step):
         raise ValueError("generate and env_step must be callables")
     C = check_int("num_chunks", num_chunks, 1)
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     s = check_int("s", s, 1, H)
-    ds = list(delays)
-    if len(ds) != C:
-        raise ValueError(f"delays must have one entry per chunk ({C}), got {len(ds)}")
-    check_int("delays[0]", ds[0], 0, 0)
+    ds = _delays(delays, C, H, s)
     obs = obs0
     chunks, priors, request_obs, executed = [], [], [], []
     prev = None

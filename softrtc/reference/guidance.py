@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ._validate import check_array, check_choice, check_int, check_real
+from ._validate import check_array, check_bool, check_choice, check_horizon, check_int, check_real
 from .sampler import euler_times, field_output
 from .weights import check_weights, prefix_weights
 
@@ -29,7 +29,7 @@ GUIDANCE_SCHEDULES = {"hard": "zeros", "soft": "exp"}
 
 def guidance_prefix_weights(H: int, s: int, d: int, variant: str) -> np.ndarray:
     """Guidance weights W: start = d, end = H - s, zeros (hard) or exp (soft) schedule ([G-1])."""
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     s = check_int("s", s, 1, H)
     d = check_int("d", d, 0, H - s)
     check_choice("variant", variant, tuple(GUIDANCE_SCHEDULES))
@@ -56,6 +56,7 @@ def guided_sample(field, obs, noise, prior, weights, num_steps: int,
         raise ValueError("field must be callable and provide field.vjp(obs, x, t, cotangent)")
     x = check_array("noise", noise, ndim=2)
     obs = check_array("obs", obs, ndim=1)
+    return_trace = check_bool("return_trace", return_trace)
     y = check_array("prior", prior, shape=x.shape)
     w = check_weights("weights", weights, x.shape[0])[:, None]
     T = check_int("num_steps", num_steps, 1, 1 << 16)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_choice, check_int
+from ._validate import MAX_HORIZON, check_array, check_choice, check_int
 from .executor import check_delay
 from .guidance import guidance_prefix_weights, guided_sample
 from .sampler import naive_sample, rtc_sample
@@ -55,13 +55,13 @@ def generate_chunk(method: str, field, obs, noise, prior, s: int, d: int, num_st
     delay ([X-1]), a prior of naive (shape of ``noise``), a window of any method.
     """
     check_choice("method", method, METHODS)
-    H = np.shape(noise)[0] if np.ndim(noise) == 2 else -1
-    H = check_int("noise.shape[0]", H, 1)
+    noise = check_array("noise", noise, ndim=2)
+    H = check_int("noise.shape[0]", noise.shape[0], 1, MAX_HORIZON)
     s = check_int("s", s, 1, H)
     if window is not None:
         check_window(H, window)
     if prior is not None and method == "naive":
-        check_array("prior", prior, shape=np.shape(noise))
+        check_array("prior", prior, shape=noise.shape)
     if prior is None:
         check_int("d", d, 0, 0)
         return naive_sample(field, obs, noise, num_steps)

@@ -14,8 +14,12 @@ from __future__ import annotations
 import numpy as np
 
 from ._validate import check_array, check_int, check_real
+from .delays import MAX_DELAY
 
 HIGH_DELAYS = (3, 4)
+# [N-12] Bootstrap bounds: resamples B and values n per resample.
+MAX_RESAMPLES = 10**7
+MAX_VALUES = 10**7
 
 
 def finite_differences(actions, order: int) -> np.ndarray:
@@ -45,8 +49,9 @@ def action_jerk(actions) -> float:
 def switch_steps(chunk_index) -> np.ndarray:
     """Steps t >= 1 whose action comes from another chunk than step t-1 ([M-3])."""
     ci = np.asarray(chunk_index)
-    if ci.ndim != 1 or not np.issubdtype(ci.dtype, np.integer):
-        raise ValueError("chunk_index must be a 1-D integer array")
+    if ci.ndim != 1 or not np.issubdtype(ci.dtype, np.integer) or ci.size == 0:
+        raise ValueError(f"chunk_index must be a non-empty 1-D integer array, got shape {list(ci.shape)} "
+                         f"and dtype {ci.dtype}")
     return np.nonzero(ci[1:] != ci[:-1])[0] + 1
 
 
@@ -80,8 +85,8 @@ def standard_error(values) -> float:
 
 def bootstrap_indices(num_values: int, num_resamples: int, seed: int) -> np.ndarray:
     """Resample index matrix [B, n] = default_rng(seed).integers(0, n, (B, n)) ([M-5])."""
-    n = check_int("num_values", num_values, 1)
-    B = check_int("num_resamples", num_resamples, 1, 10**7)
+    n = check_int("num_values", num_values, 1, MAX_VALUES)
+    B = check_int("num_resamples", num_resamples, 1, MAX_RESAMPLES)
     seed = check_int("seed", seed, 0)
     return np.random.default_rng(seed).integers(0, n, size=(B, n))
 
@@ -108,4 +113,4 @@ def bootstrap_interval(values, num_resamples: int = 10000, seed: int = 0,
 
 def is_high_delay(d: int) -> bool:
     """High delay means d in {3, 4} ([M-7])."""
-    return check_int("d", d, 0) in HIGH_DELAYS
+    return check_int("d", d, 0, MAX_DELAY) in HIGH_DELAYS

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_int, check_real
+from ._validate import check_array, check_bool, check_int, check_real
 from .weights import check_weights
 
 
@@ -40,9 +40,13 @@ def blend_time(t: float, weights) -> np.ndarray:
 def field_output(name: str, value, shape: tuple) -> np.ndarray:
     """A velocity (or VJP) returned by a field: shape of the state, finite ([N-7])."""
     try:
-        v = np.asarray(value, dtype=np.float64)
+        raw = np.asarray(value)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name} must return a numeric array, got {type(value).__name__}") from exc
+    # [N-7] As for inputs: a complex, boolean or string result is an error, not converted.
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must return a real numeric array (integer or float), got dtype {raw.dtype}")
+    v = raw.astype(np.float64)
     if v.shape != tuple(shape):
         raise ValueError(f"{name} must return an array of the state's shape {list(shape)}, got {list(v.shape)}")
     if not np.all(np.isfinite(v)):
@@ -65,6 +69,7 @@ def naive_sample(field, obs, noise, num_steps: int, return_trace: bool = False):
     (state, time, velocity, next_state).
     """
     obs, x = _check_inputs(field, obs, noise)
+    return_trace = check_bool("return_trace", return_trace)
     trace = []
     T = check_int("num_steps", num_steps, 1, 1 << 16)
     for t in euler_times(T):
@@ -84,6 +89,7 @@ def rtc_sample(field, obs, noise, prior, weights, num_steps: int, return_trace: 
     weights [H] come from weights.soft_weights / hard_weights.
     """
     obs, x = _check_inputs(field, obs, noise)
+    return_trace = check_bool("return_trace", return_trace)
     y = check_array("prior", prior, shape=x.shape)
     w = check_weights("weights", weights, x.shape[0])
     T = check_int("num_steps", num_steps, 1, 1 << 16)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_int
+from ._validate import check_array, check_int, check_real
 
 PARAM_NAMES = ("W1", "Wt", "Wo", "b1", "W2", "b2")
 
@@ -29,6 +29,8 @@ class ReferenceVelocityField:
     """v(obs, x, t) of [F-1] with its vector-Jacobian product in x ([F-2])."""
 
     def __init__(self, params: dict):
+        if not isinstance(params, dict):
+            raise ValueError(f"params must be a dict with keys {PARAM_NAMES}, got {type(params).__name__}")
         missing = [k for k in PARAM_NAMES if k not in params]
         if missing:
             raise ValueError(f"params is missing {missing}; expected keys {PARAM_NAMES}")
@@ -60,6 +62,7 @@ class ReferenceVelocityField:
         A = check_int("action_dim", action_dim, 1, 4096)
         O = check_int("obs_dim", obs_dim, 1, 1 << 20)
         K = check_int("hidden", hidden, 1, 4096)
+        scale = check_real("scale", scale, 0.0, lo_open=True)
         rng = np.random.default_rng(seed)
         n = lambda *shape: rng.standard_normal(shape)
         params = {

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._validate import check_choice, check_int, check_real
+from ._validate import MAX_HORIZON, check_array, check_choice, check_horizon, check_int, check_real
 from .endpoints import EndpointRule, delay_scaled, endpoint
 
 SCHEDULES = ("zeros", "ones", "linear", "exp")
@@ -37,9 +37,7 @@ def schedule_value(schedule: str, x) -> np.ndarray:
     All are non-increasing in x, take values in [0, 1], and (except zeros) g(0) = 1.
     """
     check_choice("schedule", schedule, SCHEDULES)
-    x = np.asarray(x, dtype=np.float64)
-    if not np.all(np.isfinite(x)) or (x.size and (x.min() < 0.0 or x.max() > 1.0)):
-        raise ValueError("x must contain finite values in [0, 1]")
+    x = check_array("x", x, lo=0.0, hi=1.0)
     if schedule == "zeros":
         return np.zeros_like(x)
     if schedule == "ones":
@@ -58,8 +56,8 @@ def window_positions(d: int, e: int, parametrization: str = "rtc") -> np.ndarray
     paper: x_j = (j - d) / (e - d), so the first window token has x = 0
     """
     check_choice("parametrization", parametrization, PARAMETRIZATIONS)
-    d = check_int("d", d, 0)
-    e = check_int("e", e, d)
+    d = check_int("d", d, 0, MAX_HORIZON)
+    e = check_int("e", e, d, MAX_HORIZON)
     j = np.arange(d, e, dtype=np.float64)
     if parametrization == "rtc":
         return (j - d + 1.0) / (e - d + 1.0)
@@ -72,13 +70,14 @@ def prefix_weights(H: int, d: int, e: int, schedule: str = "linear",
 
     w_j = 1 for j < d; g(x_j) for d <= j < e; 0 for j >= e. Requires 0 <= d <= e <= H.
     """
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     d = check_int("d", d, 0, H)
     e = check_int("e", e, d, H)
     check_choice("schedule", schedule, SCHEDULES)
     w = np.zeros(H, dtype=np.float64)
     w[:d] = 1.0
-    w[d:e] = schedule_value(schedule, window_positions(d, e, parametrization))
+    if e > d:  # an empty window has no positions to evaluate
+        w[d:e] = schedule_value(schedule, window_positions(d, e, parametrization))
     return w
 
 
@@ -91,7 +90,7 @@ def effective_endpoint(H: int, d: int, e: int, s: int | None = None, overflow: s
     where the previous chunk still has actions: e* = max(d, min(e, o)).
     overflow="zeros" keeps e and the prior is zero-padded past o ([X-3]).
     """
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     d = check_int("d", d, 0, H)
     e = check_int("e", e, 0, H)
     check_choice("overflow", overflow, OVERFLOWS)
@@ -138,7 +137,7 @@ def check_window(H: int, window) -> SoftWindow:
     ...
     ValueError: window endpoint bound (h_max or h) must be <= H=4, got 5
     """
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     if not isinstance(window, SoftWindow):
         raise ValueError(f"window must be a SoftWindow, got {type(window).__name__}")
     if window.rule.kind != "hard" and window.rule.bound() > H:
@@ -152,7 +151,7 @@ def soft_weights(H: int, d: int, window: SoftWindow, s: int | None = None) -> np
     >>> soft_weights(8, 3, SoftWindow(), s=4).round(3).tolist()
     [1.0, 1.0, 1.0, 0.5, 0.0, 0.0, 0.0, 0.0]
     """
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     d = check_int("d", d, 0, H)
     window = check_window(H, window)
     e = min(endpoint(window.rule, d), H) if window.rule.kind == "hard" else endpoint(window.rule, d)
@@ -162,12 +161,11 @@ def soft_weights(H: int, d: int, window: SoftWindow, s: int | None = None) -> np
 
 def hard_weights(H: int, d: int) -> np.ndarray:
     """Hard RTC weights 1[j < d] ([W-8])."""
-    H = check_int("H", H, 1)
+    H = check_horizon(H)
     d = check_int("d", d, 0, H)
     return (np.arange(H) < d).astype(np.float64)
 
 
 def check_weights(name: str, w, H: int) -> np.ndarray:
     """Validate a weight vector: shape [H], finite, values in [0, 1] ([W-1])."""
-    from ._validate import check_array
-    return check_array(name, w, shape=(H,), lo=0.0, hi=1.0)
+    return check_array(name, w, shape=(check_horizon(H),), lo=0.0, hi=1.0)
