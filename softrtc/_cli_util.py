@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
+import sys
 import tempfile
 from pathlib import Path
 from typing import Callable
@@ -29,10 +31,29 @@ def _range(lo, hi) -> str:
     return f" <= {hi}" if hi is not None else ""
 
 
+def command_error(prog: str, message) -> int:
+    """[N-11] One line ``PROG: error: MESSAGE`` on stderr; returns the exit status 2.
+
+    Called while an exception is being handled, ``SOFTRTC_TRACEBACK=1``
+    re-raises that exception (with its traceback) instead.
+    """
+    active = sys.exc_info()[1]
+    if active is not None and os.environ.get("SOFTRTC_TRACEBACK") == "1":
+        raise active
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    return 2
+
+
+# Plain ASCII decimal integers: Python's int() would also take "1_0", " 7 " or full-width digits.
+_INT = re.compile(r"[+-]?[0-9]+")
+
+
 def int_in(what: str, lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
     """An integer in [lo, hi] (either bound may be None); ``what`` names it in the message (argparse adds the option)."""
     def parse(text: str) -> int:
         try:
+            if not _INT.fullmatch(text):
+                raise ValueError(text)
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{what} must be an integer{_range(lo, hi)}, got {text!r}") from None
@@ -138,6 +159,16 @@ def nonempty() -> Callable[[str], str]:
             raise argparse.ArgumentTypeError("must not be empty")
         return text
     return parse
+
+
+def leaf_progs(parser: argparse.ArgumentParser) -> None:
+    """Give every parser below ``parser`` the default ``_prog`` (e.g. "softrtc bench runtime") and ``_parser``,
+    so that errors raised inside a command name the whole command ([N-11])."""
+    parser.set_defaults(_prog=parser.prog, _parser=parser)
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                leaf_progs(child)
 
 
 def group_help(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:

@@ -12,6 +12,8 @@ import importlib
 import os
 import sys
 
+from ._cli_util import command_error, leaf_progs
+
 # (module, extra that provides its dependencies)
 _SUBCOMMAND_MODULES = [
     ("softrtc.reference.cli", None),
@@ -40,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
             sub.add_parser(mod_name.split(".")[1], help=f"unavailable: missing {exc.name}{hint}")
             continue
         mod.add_subparsers(sub)
+    leaf_progs(parser)
     return parser
 
 
@@ -65,10 +68,13 @@ def _demo(args) -> int:
 
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # reported by the parser of the command they were given to, with its usage line
+        args._parser.error(f"unrecognized arguments: {' '.join(extra)}")
     if not getattr(args, "func", None):
+        # [N-11] Like a command group without its subcommand: the help, and the status of a usage error.
         parser.print_help()
-        return 0
+        return 2
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:
@@ -79,10 +85,7 @@ def main(argv=None) -> int:
     except (ValueError, OSError, OverflowError) as exc:
         # Invalid input ([N-7]) or an unusable file: one line naming the problem, no traceback.
         # SOFTRTC_TRACEBACK=1 shows the traceback when debugging softrtc itself.
-        if os.environ.get("SOFTRTC_TRACEBACK") == "1":
-            raise
-        print(f"softrtc {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return command_error(args._prog, exc)
 
 
 if __name__ == "__main__":

@@ -75,7 +75,16 @@ def test_output_and_input_paths_are_checked_up_front(tmp_path):
     (["weights", "--lam", "nan"], "--lam"),
     (["weights", "--rule", "hard", "--lam", "3"], "--lam does not apply to --rule hard"),
     (["weights", "--rule", "fixed", "--h-max", "3"], "--h-max does not apply to --rule fixed"),
-    (["weights", "--H", "9", "--h-max", "12"], "h_max"),
+    (["weights", "--H", "9", "--h-max", "12"], "--h-max must be <= --H=9, got 12"),
+    (["weights", "--H", "4", "--s", "2"], "--h-max must be <= --H=4, got 5 (the default"),
+    (["weights", "--H", "4", "--s", "2", "--rule", "fixed", "--length", "6"], "--length must be <= --H=4"),
+    (["weights", "--s", "9"], "--s must be an integer in [1, 8] (--H), got 9"),
+    (["weights", "--H", "1_0"], "--H"),
+    (["weights", "--H", "\uff18"], "--H"),
+    (["bench", "runtime", "--calls", "2.5"], "--calls: value must be an integer in [1, 10000000]"),
+    (["bench", "vjp", "--seed", "1e3"], "--seed: value must be an integer in [0, 2147483647]"),
+    (["bench", "runtime", "--train-calls", "nan"], "--train-calls"),
+    (["bench", "runtime", "--steps", "1001"], "--steps"),
     (["conformance", "generate", "--out", ""], "--out"),
     (["conformance", "generate", "--out", "README.md"], "--out"),
     (["conformance", "run", "--impl", "reference", "--only", "nosuch"], "'nosuch' is not an interface function"),
@@ -149,3 +158,71 @@ def test_conformance_report_is_written(tmp_path):
     out = tmp_path / "sub" / "r.json"
     assert status(["conformance", "run", "--impl", "reference", "--only", "endpoint", "--report", str(out)]) == 0
     assert json.loads(out.read_text())["counts"]["fail"] == 0
+
+
+@pytest.mark.parametrize("argv, prog", [
+    (["weights", "--H", "4", "--s", "2"], "softrtc weights"),
+    (["bench", "runtime", "--calls", "0"], "softrtc bench runtime"),
+    (["bench", "vjp", "--execute-horizon", "9"], "softrtc bench vjp"),
+    (["conformance", "run", "--impl", "nosuch_adapter_module"], "softrtc conformance run"),
+    (["conformance", "generate", "--out", "README.md"], "softrtc conformance generate"),
+    (["arm", "study", "--checkpoints", "/nonexistent"], "softrtc arm study"),
+    (["weights", "--bogus"], "softrtc weights"),
+    (["bench", "runtime", "--bogus", "3"], "softrtc bench runtime"),
+])
+def test_every_error_line_names_the_whole_command(argv, prog, capsys):
+    """N-11, CF-18: bad options, library errors and unknown options all end in one line that starts with the
+    whole command, `softrtc CMD SUB: error: `, and exit with status 2."""
+    assert status(argv) == 2
+    line = last_error_line(capsys)
+    assert line.startswith(prog + ": error: "), line
+
+
+@pytest.mark.parametrize("argv, exc", [
+    (["weights", "--H", "4", "--s", "2"], ValueError),
+    (["bench", "runtime", "--execute-horizon", "9", "--arch", "tiny"], ValueError),
+    (["conformance", "run", "--impl", "nosuch_adapter_module"], Exception),
+])
+def test_traceback_switch_reraises_in_every_command(argv, exc, monkeypatch):
+    """N-11: with SOFTRTC_TRACEBACK=1 an error inside any command is re-raised with its traceback, including the
+    commands that report their own errors (weights, bench, conformance)."""
+    monkeypatch.setenv("SOFTRTC_TRACEBACK", "1")
+    with pytest.raises(exc):
+        main(argv)
+
+
+def test_softrtc_alone_is_a_usage_error(capsys):
+    """N-11: `softrtc` without a command prints its help and exits with 2, as a command group does."""
+    assert status([]) == 2
+    assert capsys.readouterr().out.startswith("usage: softrtc ")
+
+
+def test_integer_options_take_plain_decimals_only():
+    """N-7, N-11: integer options take ASCII decimal digits with an optional sign; Python's int() would also
+    read '1_0' as 10, ' 7' as 7 and full-width digits."""
+    import argparse
+
+    parse = cu.int_in("value", -5, 100)
+    assert parse("10") == 10 and parse("-3") == -3 and parse("+4") == 4
+    for bad in ("1_0", " 7", "7 ", "\uff18", "0x10", "1e1", ""):
+        with pytest.raises(argparse.ArgumentTypeError, match="must be an integer"):
+            parse(bad)
+
+
+def test_weights_table_lines_have_no_trailing_spaces(capsys):
+    """W-7: the weights table printed by `softrtc weights` has no trailing blanks (it is compared as text)."""
+    assert status(["weights"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[1].startswith("d  e(d) e* | j=0")
+    assert all(line == line.rstrip() for line in out.splitlines())
+
+
+def test_kinetix_methods_spelled_twice_are_one_method(tmp_path, capsys):
+    """KE-2, N-11: `--methods` naming one method and window twice (bare train_soft and its explicit window, or
+    lam 2 and 2.0) is an error before any rollout, not two identical rows."""
+    pytest.importorskip("kinetix", reason="needs kinetix-env")
+    for methods in ("train_soft,train_soft:delay_scaled:2:5", "train_soft:delay_scaled:2,train_soft:delay_scaled:2.0"):
+        assert status(["kinetix", "eval", "--methods", methods, "--out", str(tmp_path / "o")]) == 2
+        line = last_error_line(capsys)
+        assert line.startswith("softrtc kinetix eval: error: ") and "same method and window" in line, line
+    assert not (tmp_path / "o").exists()

@@ -464,7 +464,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     (tmp_path / "afile").write_text("x")
     cases = [
         (["kinetix", "eval", "--levels", "grasp_easy,nope", "--out", str(tmp_path)], "--levels entries"),
-        (["kinetix", "eval", "--delays", "0,5", "--out", str(tmp_path)], "--delays entries must be an integer [0, 4]"),
+        (["kinetix", "eval", "--delays", "0,5", "--out", str(tmp_path)], "--delays entries must be an integer in [0, 4]"),
         (["kinetix", "eval", "--methods", "naive,fancy", "--out", str(tmp_path)], "--methods entry"),
         (["kinetix", "eval", "--episodes", "65537", "--out", str(tmp_path)], "--episodes"),
         (["kinetix", "eval", "--levels", "grasp_easy", "--levels-dir", str(tmp_path / "none"),

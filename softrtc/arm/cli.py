@@ -84,5 +84,6 @@ def demo() -> int:
     from .study import run_study
 
     with tempfile.TemporaryDirectory() as d:
-        run_study(None, trials=1, out_dir=d, max_steps=250, plot=False)
+        # The files go to a folder removed on return, so they are not announced.
+        run_study(None, trials=1, out_dir=d, max_steps=250, plot=False, announce_files=False)
     return 0

@@ -624,7 +624,7 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
     base, losses, tc = train_flow_policy(ds, norm, "naive", steps, seed, config=config, batch_size=batch_size,
                                          learning_rate=learning_rate, progress=verbose)
     paths = {"naive": save_arm_checkpoint(out / _CKPT_FILES["naive"], base, norm, config, "naive", meta, tc)}
-    report("base", losses)
+    report("naive", losses)
     for i, m in enumerate(("train_hard", "train_soft")):
         # Fine-tuning starts from trained weights: a lower peak rate keeps it from undoing the base.
         ft, losses, tc = train_flow_policy(ds, norm, m, finetune_steps, seed + 1 + i, config=config, init=base,

@@ -113,13 +113,15 @@ def plot_traces(records: dict, path) -> str:
 
 def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
               added_latency_s: float = DEFAULT_ADDED_LATENCY_S, seed0: int = DEFAULT_SEED0, key_seed: int = 0,
-              out_dir="arm_study", max_steps: int | None = None, plot: bool = True, verbose: bool = True) -> dict:
+              out_dir="arm_study", max_steps: int | None = None, plot: bool = True, verbose: bool = True,
+              announce_files: bool = True) -> dict:
     """Run the arm study and write ``results.csv``, ``summary.csv`` and ``traces.png`` to ``out_dir`` ([A-25]).
 
     Trial ``i`` of every method uses env seed ``seed0 + i`` and key
     ``fold_in(key(key_seed), i)``. Returns ``{"rows", "per_trial", "jitter",
     "table", "paths"}``; ``jitter`` pools the control-loop periods of all
-    trials of a method ([R-9]).
+    trials of a method ([R-9]). ``verbose`` prints the table and the jitter
+    lines, and with ``announce_files`` the paths written.
     """
     from .policies import _check_int, _check_float
 
@@ -129,6 +131,9 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
     added_latency_s = _check_float("added_latency_s", added_latency_s, 0.0, 10.0)
     if not isinstance(out_dir, (str, os.PathLike)):
         raise ValueError(f"out_dir must be a str or PathLike, got {out_dir!r}")
+    for name, flag in (("plot", plot), ("verbose", verbose), ("announce_files", announce_files)):
+        if not isinstance(flag, bool):
+            raise ValueError(f"{name} must be True or False, got {flag!r}")
     methods = tuple(methods)
     if not methods:
         raise ValueError("methods must not be empty")
@@ -187,6 +192,7 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
             print(f"{METHOD_LABELS.get(m, m):15s} control period p50 {j['p50_ms']:.2f} ms, p99 {j['p99_ms']:.2f} ms, "
                   f"max {j['max_ms']:.1f} ms; realized delays (ticks: count) {delay_hist[m]}; "
                   f"late chunks {j['late_rejects']}")
-        print("wrote " + ", ".join(paths.values()))
+        if announce_files:
+            print("wrote " + ", ".join(paths.values()))
     return {"rows": rows, "per_trial": per_trial, "jitter": jitter, "delays": delay_hist, "table": table,
             "paths": paths}

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .._cli_util import group_help
+from .._cli_util import group_help, leaf_progs
 from . import generate, runner
 
 
@@ -40,6 +40,7 @@ def demo() -> int:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m softrtc.conformance")
     _fill(parser)
+    leaf_progs(parser)
     args = parser.parse_args(argv)
     return int(args.func(args) or 0)
 

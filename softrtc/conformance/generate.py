@@ -26,7 +26,7 @@ from softrtc.reference import (conventions, corruption, delays, endpoints, execu
                                metrics, sampler, velocity, weights)
 from softrtc.reference.weights import SoftWindow
 
-from .._cli_util import output_dir
+from .._cli_util import command_error, output_dir
 from . import FORMAT_VERSION, SPEC_VERSION
 
 DEFAULT_OUT = Path(__file__).resolve().parents[2] / "conformance" / "vectors"
@@ -573,8 +573,7 @@ def run_from_args(args) -> int:
     try:
         sizes = generate(args.out)
     except (ValueError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return command_error(getattr(args, "_prog", "softrtc conformance generate"), exc)
     for name, size in sizes.items():
         print(f"{name:20s} {size:>9d} bytes")
     print(f"total {sum(sizes.values())} bytes in {Path(args.out) if args.out else DEFAULT_OUT}")
@@ -585,6 +584,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m softrtc.conformance.generate",
                                      description="Generate the softrtc conformance vectors from the NumPy reference.")
     add_arguments(parser)
+    parser.set_defaults(_prog=parser.prog)
     return run_from_args(parser.parse_args(argv))
 
 

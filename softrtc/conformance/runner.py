@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._cli_util import comma_list, input_dir, output_file
+from .._cli_util import command_error, comma_list, input_dir, output_file
 from . import FORMAT_VERSION
 from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, _describe, _fatal,
                       load_adapter, supported_functions)
@@ -604,8 +604,7 @@ def run_from_args(args) -> int:
     try:
         res = run(args.impl, args.vectors, only)
     except (AdapterError, VectorError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return command_error(getattr(args, "_prog", "softrtc conformance run"), exc)
     print(format_summary(res))
     try:
         for out in (args.report, args.junit):
@@ -616,8 +615,7 @@ def run_from_args(args) -> int:
         if args.junit:
             write_junit(res, args.junit)
     except OSError as exc:
-        print(f"error: cannot write report: {exc}", file=sys.stderr)
-        return 2
+        return command_error(getattr(args, "_prog", "softrtc conformance run"), f"cannot write report: {exc}")
     return 0 if res.ok else 1
 
 
@@ -625,6 +623,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m softrtc.conformance.runner",
                                      description="Run the softrtc conformance vectors against an implementation.")
     add_arguments(parser)
+    parser.set_defaults(_prog=parser.prog)
     return run_from_args(parser.parse_args(argv))
 
 

@@ -12,7 +12,7 @@ import argparse
 import sys
 import time
 
-from .._cli_util import comma_list, group_help, int_in, output_file
+from .._cli_util import command_error, comma_list, group_help, int_in, output_file
 
 
 _size_list = comma_list("value", int_in("each batch size", 1, 1 << 16))
@@ -46,14 +46,14 @@ def _delay(text: str):
 
 def _common_options(parser, noun: str, out: str) -> None:
     """Options that `bench runtime` and `bench vjp` share, with the same meaning ([B-10], [B-12])."""
-    parser.add_argument("--calls", type=int, default=200, help=f"timed calls per {noun} and batch size (default 200)")
-    parser.add_argument("--warmup", type=int, default=5, help="untimed warm-up rounds after compilation, >= 1 (default 5)")
+    parser.add_argument("--calls", type=int_in("value", 1, 10**7), default=200, help=f"timed calls per {noun} and batch size, 1 .. 10^7 (default 200)")
+    parser.add_argument("--warmup", type=int_in("value", 1, 10**6), default=5, help="untimed warm-up rounds after compilation, 1 .. 10^6 (default 5)")
     parser.add_argument("--batch-sizes", type=_batch_sizes, default=(1, 32), help="comma-separated (default 1,32)")
     parser.add_argument("--delay", type=_delay, default=None,
                         help="'rotate' (default: d = 0 .. min(s, H - s) in turn across calls) or a fixed delay")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the policy parameters and inputs (default 0)")
-    parser.add_argument("--steps", type=int, default=5, help="Euler steps T (default 5)")
-    parser.add_argument("--execute-horizon", type=int, default=4, help="execute horizon s (default 4)")
+    parser.add_argument("--seed", type=int_in("value", 0, 2**31 - 1), default=0, help="seed of the policy parameters and inputs (default 0)")
+    parser.add_argument("--steps", type=int_in("value", 1, 1000), default=5, help="Euler steps T, 1 .. 1000 (default 5)")
+    parser.add_argument("--execute-horizon", type=int_in("value", 1, 4096), default=4, help="execute horizon s, 1 .. H (default 4)")
     parser.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark",
                         help="policy size: the benchmark's (obs 679, action 6, H 8; default) or a tiny smoke-test one")
     parser.add_argument("--out", type=output_file(), default=out, help=f"JSON output (default {out})")
@@ -72,8 +72,8 @@ def add_subparsers(subparsers) -> None:
                     help="implementation of the method rows (default fast, which also measures the straightforward "
                          "naive and train-soft samplers as rows of their own; straightforward measures the six "
                          "method rows on that path only)")
-    rt.add_argument("--train-batch", type=int, default=32, help="batch size of the training steps (default 32)")
-    rt.add_argument("--train-calls", type=int, default=50,
+    rt.add_argument("--train-batch", type=int_in("value", 1, 1 << 16), default=32, help="batch size of the training steps, 1 .. 65536 (default 32)")
+    rt.add_argument("--train-calls", type=int_in("value", 0, 10**7), default=50,
                     help="timed training steps per method (default 50; 0 skips them)")
     rt.add_argument("--strict", action="store_true", help="exit with status 1 when a timing target fails")
     rt.set_defaults(func=run_runtime)
@@ -92,20 +92,19 @@ def _run(args, run, fmt, **extra):
     """
     from . import bench
 
+    prog = getattr(args, "_prog", "softrtc bench")
     try:
         config = bench.BenchConfig(
             calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,
             seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, arch=args.arch, **extra)
     except ValueError as exc:
-        print(f"softrtc bench: error: {_as_options(str(exc))}", file=sys.stderr)
-        return 2
+        return command_error(prog, _as_options(str(exc)))
     res = run(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
     print(fmt(res))
     try:
         bench.write_json(res, args.out)
     except OSError as exc:
-        print(f"softrtc bench: error: cannot write {args.out}: {exc}", file=sys.stderr)
-        return 2
+        return command_error(prog, f"cannot write {args.out}: {exc}")
     print(f"wrote {args.out}")
     return res
 

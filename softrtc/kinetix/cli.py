@@ -10,10 +10,9 @@ from __future__ import annotations
 import importlib.util
 import json
 import pickle
-import sys
 from pathlib import Path
 
-from .._cli_util import comma_list, group_help, input_dir, int_in, nonempty, output_dir, output_file, real_in
+from .._cli_util import command_error, comma_list, group_help, input_dir, int_in, nonempty, output_dir, output_file, real_in
 from .limits import EPISODES_MAX, NUM_ENVS_MAX, REPEATS_MAX
 
 for _dep in ("jax", "flax", "kinetix"):
@@ -44,8 +43,7 @@ def _fail(cmd: str, exc: BaseException) -> int:
     field = msg.split(" ", 1)[0]
     if field in _OPTIONS[cmd]:
         msg = _OPTIONS[cmd][field] + msg[len(field):]
-    print(f"softrtc kinetix {cmd}: error: {msg}", file=sys.stderr)
-    return 2
+    return command_error(f"softrtc kinetix {cmd}", msg)
 
 
 def add_subparsers(subparsers) -> None:

@@ -77,11 +77,11 @@ ACTION_DIM = NUM_MOTOR_BINDINGS + NUM_THRUSTER_BINDINGS
 def _check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
     # bool is an int subclass and floats like 2.0 are rejected on purpose (N-7).
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        rng = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
         raise ValueError(f"{name} must be an integer {rng}, got {value!r}")
     value = int(value)
     if value < lo or (hi is not None and value > hi):
-        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        rng = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
         raise ValueError(f"{name} must be an integer {rng}, got {value}")
     return value
 

@@ -95,10 +95,10 @@ _DISPLAY = {
 
 def _check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        rng = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
         raise ValueError(f"{name} must be an integer {rng}, got {value!r}")
     if value < lo or (hi is not None and value > hi):
-        rng = f"[{lo}, {hi}]" if hi is not None else f">= {lo}"
+        rng = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
         raise ValueError(f"{name} must be an integer {rng}, got {value}")
     return int(value)
 
@@ -503,6 +503,12 @@ class EvalConfig:
                       _as_tuple("methods", self.methods, "distinct methods", single=(str, MethodSpec)))
         if not meths or len({m.label for m in meths}) != len(meths):
             raise ValueError(f"methods must be a non-empty sequence of distinct methods, got {self.methods!r}")
+        seen: dict = {}
+        for m in meths:  # [KE-2] two spellings of one method and window (lam 2 and 2.0) are one method
+            same = seen.setdefault((m.method, m.window), m.label)
+            if same != m.label:
+                raise ValueError(f"methods must be distinct methods: {same!r} and {m.label!r} are the same method "
+                                 f"and window")
         object.__setattr__(self, "methods", meths)
         s = _check_int("execute_horizon", self.execute_horizon, 1, 1 << 12)
         ds = _as_tuple("delays", self.delays, f"distinct integers in [0, {s}]")

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import json
-import sys
 
 import numpy as np
 
-from .._cli_util import int_in, real_in
+from .._cli_util import command_error, int_in, real_in
 from . import endpoints, metrics
 from .endpoints import delay_scaled, fixed, hard, offset
 from .executor import execute_chunks
@@ -45,7 +44,7 @@ def weights_table(H: int, s: int, window: SoftWindow, delays=None) -> str:
     s = check_int("s", s, 1, H)
     delays = range(0, min(s, H - s) + 1) if delays is None else delays
     lines = [f"H={H} s={s} window={json.dumps(window.to_dict())}",
-             "d  e(d) e* | " + " ".join(f"j={j:<3d}" for j in range(H))]
+             ("d  e(d) e* | " + " ".join(f"j={j:<3d}" for j in range(H))).rstrip()]
     from .weights import effective_endpoint
     for d in delays:
         e = endpoints.endpoint(window.rule, d)
@@ -119,9 +118,17 @@ def add_subparsers(sub) -> None:
 
 def _weights_cmd(args) -> int:
     try:
-        window = SoftWindow(_rule_from_args(args), args.schedule, args.parametrization, args.overflow)
+        # Relations between options are checked here so that the error names the options ([N-11]).
+        if args.s > args.H:
+            raise ValueError(f"--s must be an integer in [1, {args.H}] (--H), got {args.s}")
+        rule = _rule_from_args(args)
+        if rule.kind != "hard" and rule.bound() > args.H:
+            opt = "--h-max" if rule.kind in ("delay_scaled", "offset") else "--length"
+            given = getattr(args, "h_max" if opt == "--h-max" else "length") is not None
+            raise ValueError(f"{opt} must be <= --H={args.H}, got {rule.bound()}"
+                             + ("" if given else f" (the default; pass {opt} <= {args.H} for a short chunk)"))
+        window = SoftWindow(rule, args.schedule, args.parametrization, args.overflow)
         print(weights_table(args.H, args.s, window))
     except ValueError as exc:
-        print(f"softrtc weights: error: {exc}", file=sys.stderr)
-        return 2
+        return command_error(getattr(args, "_prog", "softrtc weights"), exc)
     return 0
