@@ -13,7 +13,6 @@ from softrtc import reference as R
 from softrtc.jax import endpoints as JE
 from softrtc.jax import executor as JX
 from softrtc.jax import methods as JM
-from softrtc.jax import sampler as JS
 from softrtc.jax import velocity as JF
 from softrtc.jax import weights as JW
 

@@ -299,7 +299,6 @@ def test_fail_on_the_last_step_is_a_timeout(task, jreset, jstep):
 def test_batched_step_matches_single(task, jreset, jstep):
     """K-11: env i of step_batch equals step with jax.random.split(key, n)[i]."""
     import jax
-    import jax.numpy as jnp
 
     n = 3
     obs, bstate = task.reset_batch(jax.random.key(1), n)

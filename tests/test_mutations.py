@@ -14,7 +14,7 @@ import pytest
 
 from softrtc.conformance import runner
 from softrtc.conformance.adapters.reference import ReferenceAdapter, window_from_dict
-from softrtc.reference import corruption, delays, endpoints, executor, guidance, loss, metrics, sampler, weights
+from softrtc.reference import corruption, delays, endpoints, executor, guidance, loss, metrics, weights
 from softrtc.reference.velocity import ReferenceVelocityField
 
 

@@ -12,7 +12,7 @@ import math
 
 import torch
 
-from .checks import integer, real, tensor
+from .checks import real, tensor
 from .sampling import _inputs
 
 ETA = 1e-8

@@ -320,7 +320,6 @@ class ArmSortEnv:
     def reset(self, seed) -> np.ndarray:
         """Build a fresh scene with seeded object placement ([A-5], [A-6])."""
         seed = _check_int("seed", seed, 0, None)
-        cfg = self.config
         rng = np.random.default_rng(seed)
         space = pymunk.Space()
         space.gravity = (0.0, -9.81)

@@ -17,12 +17,11 @@ The paper's closed form ("paper" parametrization) starts the window at 1::
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._validate import MAX_HORIZON, check_array, check_choice, check_horizon, check_int, check_real
+from ._validate import MAX_HORIZON, check_array, check_choice, check_horizon, check_int
 from .endpoints import EndpointRule, delay_scaled, endpoint
 
 SCHEDULES = ("zeros", "ones", "linear", "exp")
