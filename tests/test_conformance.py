@@ -368,7 +368,8 @@ def test_malformed_vectors_exit_2(tmp_path):
     (tmp_path / "a.json").write_text(json.dumps({"format_version": "1.0", "cases": [_valid_case(), ragged]}))
     r = _cli("run", "--impl", "reference", "--vectors", str(tmp_path))
     assert r.returncode == 2 and r.stdout == "" and "Traceback" not in r.stderr
-    assert r.stderr.strip().splitlines()[0].startswith("error: a.json: case 'M.standard_error.ragged': argument "
+    assert r.stderr.strip().splitlines()[0].startswith("python -m softrtc.conformance run: error: a.json: case "
+                                                       "'M.standard_error.ragged': argument "
                                                        "'values' is not a rectangular array"), r.stderr
 
 
@@ -469,7 +470,7 @@ def test_cli_system_exit_is_never_a_pass(tmp_path):
     at_import.write_text("import sys\nsys.exit()\n")
     r = _cli("run", "--impl", str(at_import))
     assert r.returncode == 2 and r.stdout == "" and "Traceback" not in r.stderr
-    assert r.stderr.strip().splitlines() == [f"error: cannot import adapter module '{at_import}' for impl "
+    assert r.stderr.strip().splitlines() == [f"python -m softrtc.conformance run: error: cannot import adapter module '{at_import}' for impl "
                                              f"'{at_import}': SystemExit"]
     with pytest.raises(AdapterError, match="SystemExit: 3"):
         bad = tmp_path / "exits_three.py"

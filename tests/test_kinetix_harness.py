@@ -162,7 +162,7 @@ def test_config_and_input_validation():
         H.MethodSpec("train_hard", window=H.parse_method("train_soft").window)
     with pytest.raises(ValueError, match="level"):
         H.bench_harness("nope")
-    with pytest.raises(ValueError, match=r"^repeats must be an integer \[1, 100\]"):
+    with pytest.raises(ValueError, match=r"^repeats must be an integer in \[1, 100\]"):
         H.bench_harness(repeats=H.REPEATS_MAX + 1)
 
 
@@ -354,7 +354,7 @@ def test_evaluate_checks_every_policy_before_the_first_rollout(monkeypatch):
         raise AssertionError("a rollout was built before every policy was checked")
 
     pol = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM, config=SMALL, rngs=nnx.Rngs(0))
-    with pytest.raises(ValueError, match=r"^episode_steps must be an integer \[1, 65536\]"):  # EvalConfig's range
+    with pytest.raises(ValueError, match=r"^episode_steps must be an integer in \[1, 65536\]"):  # EvalConfig's range
         H.make_rollout(kenv.make_env("grasp_easy", LEVELS_DIR), pol, "rtc", 1, episode_steps=0)
     monkeypatch.setattr(H, "make_rollout", no_rollout)
     cfg = H.EvalConfig(levels=("grasp_easy", "catapult"), methods=("naive", "train_hard"), episodes=1,

@@ -354,7 +354,7 @@ def test_velocity_field_arguments():
     """[F-3] [N-7] init's scale is a finite real > 0 (booleans rejected) and the constructor takes a dict."""
     for bad in (True, None, "2", 0.0, -1.0, float("nan"), 10**400, 1 + 1j):
         _raises_naming(lambda: ReferenceVelocityField.init(0, 4, 1, 2, 3, scale=bad), "scale")
-    for bad in (None, 3, ["W1"], "W1"):
+    for bad in (None, 3, ["W1"], "W1", {**F.params, "W3": F.params["W1"]}):
         _raises_naming(lambda: ReferenceVelocityField(bad), "params")
     a, b = ReferenceVelocityField.init(0, 4, 1, 2, 3, scale=2.0), ReferenceVelocityField.init(0, 4, 1, 2, 3)
     np.testing.assert_allclose(a.params["W1"], 2.0 * b.params["W1"])

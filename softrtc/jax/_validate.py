@@ -77,6 +77,23 @@ def real_value(name: str, value, lo: float | None = None, hi: float | None = Non
     return jnp.asarray(f32)
 
 
+def real_dtype(name: str, value, what: str = "be a real numeric array (integer or float)"):
+    """The dtype of an array argument, concrete or traced, if it is real: integer or float ([N-7]).
+
+    Booleans, complex numbers, strings, None and objects without a dtype are
+    rejected. Only the dtype is read, so this costs nothing inside ``jit``.
+    """
+    if value is None or isinstance(value, (str, bytes)):
+        raise ValueError(f"{name} must {what}, got {type(value).__name__}")
+    try:
+        dt = jnp.result_type(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must {what}, got {type(value).__name__}") from exc
+    if not (jnp.issubdtype(dt, jnp.integer) or jnp.issubdtype(dt, jnp.floating)):
+        raise ValueError(f"{name} must {what}, got dtype {dt}")
+    return dt
+
+
 def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
           lo: float | None = None, hi: float | None = None, dtype=jnp.float32,
           allow_empty: bool = False) -> jax.Array:
@@ -101,6 +118,7 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
     else:
+        real_dtype(name, value)  # [N-10] a traced array is checked for shape and dtype
         value = jnp.asarray(value, dtype)
     if ndim is not None and value.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {list(value.shape)}")

@@ -16,11 +16,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import numbers
 import os
 import platform
 import statistics
+import tempfile
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterable, Mapping
 
 import flax.nnx as nnx
 import jax
@@ -297,23 +300,53 @@ def _straightforward_fn(graphdef, treedef, method, window, s, T):
     return jax.jit(chunk)
 
 
+def _check_config_policy(config: Any, policy: Any) -> None:
+    """``config`` a BenchConfig and ``policy`` a FlowPolicy of its horizon ([N-7], [B-2]).
+
+    ``config.execute_horizon`` and the delays were checked against the horizon of
+    ``config.arch``; a policy of another ``H`` would index tables out of range.
+    """
+    if not isinstance(config, BenchConfig):
+        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
+    if not isinstance(policy, FlowPolicy):
+        raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
+    if policy.action_chunk_size != config.horizon:
+        raise ValueError(f"policy must have action_chunk_size H = {config.horizon} (the horizon of "
+                         f"config.arch={config.arch!r}, which fixes execute_horizon and the delays), "
+                         f"got {policy.action_chunk_size}")
+
+
+def _check_names(names: Any) -> tuple:
+    """Row names: None (all rows) or a non-empty sequence of distinct keys of :data:`CHUNK_ROWS` ([N-7])."""
+    if names is None:
+        return tuple(CHUNK_ROWS)
+    if isinstance(names, (str, bytes)) or not isinstance(names, Iterable):
+        raise ValueError(f"names must be None or a sequence of row names from {tuple(CHUNK_ROWS)}, "
+                         f"got {type(names).__name__}")
+    names = tuple(names)
+    if not names:
+        raise ValueError(f"names must name at least one row of {tuple(CHUNK_ROWS)}, got none")
+    for n in names:
+        check_choice("names entry", n, tuple(CHUNK_ROWS))
+    if len(set(names)) != len(names):
+        raise ValueError(f"names must not repeat a row, got {names!r}")
+    return names
+
+
 def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row]:
     """The measured rows ([B-1], [B-3], [B-4], [B-7]): one jitted function per row, delay traced.
 
-    ``names`` (default all) restricts the rows to those keys of :data:`CHUNK_ROWS`.
+    ``names`` (default all) restricts the rows to those keys of :data:`CHUNK_ROWS`
+    (a non-empty sequence without repeats). ``policy`` must have the horizon of
+    ``config.arch``.
 
     With ``path="fast"`` the six method rows use the fast path and the
     straightforward naive and train-soft (lam=2) samplers are rows of their
     own; with ``path="straightforward"`` the six method rows are straightforward.
     Fast-path tables are built here, once per parameter set, and timed apart.
     """
-    if not isinstance(config, BenchConfig):
-        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
-    if not isinstance(policy, FlowPolicy):
-        raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
-    names = tuple(CHUNK_ROWS) if names is None else tuple(names)
-    for n in names:
-        check_choice("names entry", n, tuple(CHUNK_ROWS))
+    _check_config_policy(config, policy)
+    names = _check_names(names)
     graphdef, treedef, _ = _params(policy)
     H, s, T = policy.action_chunk_size, config.execute_horizon, config.num_steps
     specs = [(name, config.path) for name in CHUNK_ROWS if name in names]
@@ -370,12 +403,9 @@ def check_agreement(config: BenchConfig, policy: FlowPolicy, batch: int, names=N
 
     Returns ``{name: {"max_abs_diff": float, "ok": bool}}`` over every delay of ``config``.
     """
-    if not isinstance(config, BenchConfig):
-        raise ValueError(f"config must be a BenchConfig, got {type(config).__name__}")
-    if not isinstance(policy, FlowPolicy):
-        raise ValueError(f"policy must be a FlowPolicy, got {type(policy).__name__}")
+    _check_config_policy(config, policy)
     check_int("batch", batch, 1, 1 << 16)
-    names = tuple(CHUNK_ROWS) if names is None else tuple(names)
+    names = _check_names(names)
     fast = dataclasses.replace(config, path="fast")
     rows = [r for r in build_rows(fast, policy, names) if r.path == "fast"]
     graphdef, treedef, state = _params(policy)
@@ -691,10 +721,34 @@ def run_vjp_ablation(config: BenchConfig = BenchConfig(), *,
     return result
 
 
+def _formatted(producer: str, fmt: Callable[[dict], str], res: Any, keys: tuple) -> str:
+    """``fmt(res)``, with a result that lacks a key it reads reported as ``ValueError`` naming the key ([N-7])."""
+    if not isinstance(res, Mapping):
+        raise ValueError(f"res must be a result of {producer}, got {type(res).__name__}")
+    missing = [k for k in keys if k not in res]
+    if missing:
+        raise ValueError(f"res must be a result of {producer}; it lacks the key(s) {missing}")
+    try:
+        return fmt(res)
+    except KeyError as exc:
+        raise ValueError(f"res must be a complete result of {producer}; it lacks the key {exc.args[0]!r}") from None
+    except (TypeError, AttributeError, IndexError, ValueError) as exc:
+        raise ValueError(f"res must be a result of {producer}; an entry has the wrong type or form ({exc})") from None
+
+
+_VJP_KEYS = ("config", "environment", "variants", "chunk", "agreement", "restricted_pullback", "seconds")
+_RUNTIME_KEYS = ("config", "architecture", "environment", "rows", "chunk", "agreement", "targets", "seconds")
+
+
 def format_vjp_table(res: dict) -> str:
-    """The printed table of [B-12]: per batch size, every variant's median, ratio to naive and to shipped."""
-    if not isinstance(res, dict) or "variants" not in res or "chunk" not in res:
-        raise ValueError("res must be a result of run_vjp_ablation")
+    """The printed table of [B-12]: per batch size, every variant's median, ratio to naive and to shipped.
+
+    A result without a key the table reads raises ``ValueError`` naming the key.
+    """
+    return _formatted("run_vjp_ablation", _format_vjp_table, res, _VJP_KEYS)
+
+
+def _format_vjp_table(res: dict) -> str:
     cfg = res["config"]
     lines = [f"softrtc bench vjp: guided soft RTC (fast path), {cfg['arch']} network, s {cfg['execute_horizon']}, "
              f"T {cfg['num_steps']}; median of {cfg['calls']} interleaved calls after {cfg['warmup']} warm-up "
@@ -717,9 +771,14 @@ def format_vjp_table(res: dict) -> str:
 
 
 def format_table(res: dict) -> str:
-    """The printed table of [B-10]: rows x batch sizes (median ms, ratio to naive), agreement, targets."""
-    if not isinstance(res, dict) or "chunk" not in res or "rows" not in res:
-        raise ValueError("res must be a result of run_benchmark")
+    """The printed table of [B-10]: rows x batch sizes (median ms, ratio to naive), agreement, targets.
+
+    A result without a key the table reads raises ``ValueError`` naming the key.
+    """
+    return _formatted("run_benchmark", _format_table, res, _RUNTIME_KEYS)
+
+
+def _format_table(res: dict) -> str:
     cfg, arch = res["config"], res["architecture"]
     bs = list(res["chunk"])
     d = "rotating " + "..".join(map(str, (0, max(0, len(_delays_of(cfg)) - 1)))) \
@@ -777,15 +836,63 @@ def _delays_of(cfg: dict) -> list:
     return list(range(min(s, H - s) + 1))
 
 
+def _json_value(value: Any, where: str) -> Any:
+    """``value`` as plain JSON data ([B-10]): NumPy and JAX scalars and arrays become numbers and lists,
+    tuples lists, and every non-finite float (NaN, inf) ``None`` (JSON ``null``)."""
+    if value is None or isinstance(value, (str, bool, np.bool_)):
+        return bool(value) if isinstance(value, np.bool_) else value
+    if isinstance(value, Mapping):
+        out = {}
+        for k, x in value.items():
+            if not isinstance(k, str):
+                raise ValueError(f"res{where} must have string keys, got {k!r}")
+            out[k] = _json_value(x, f"{where}[{k!r}]")
+        return out
+    if isinstance(value, (list, tuple)):
+        return [_json_value(x, f"{where}[{i}]") for i, x in enumerate(value)]
+    if isinstance(value, (np.ndarray, np.generic, jax.Array)):
+        arr = np.asarray(value)
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"res{where} must hold JSON values (numbers, strings, bools, None, lists, dicts), "
+                             f"got an array of dtype {arr.dtype}")
+        return _json_value(arr.tolist(), where)
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        f = float(value)
+        return f if math.isfinite(f) else None
+    raise ValueError(f"res{where} must hold JSON values (numbers, strings, bools, None, lists, dicts), "
+                     f"got {type(value).__name__}")
+
+
 def write_json(res: dict, path: str | os.PathLike) -> None:
-    """Write the result of :func:`run_benchmark` ([B-10]) or :func:`run_vjp_ablation` ([B-12]) as JSON; creates the parent folder."""
-    if not isinstance(res, dict) or "chunk" not in res:
+    """Write the result of :func:`run_benchmark` ([B-10]) or :func:`run_vjp_ablation` ([B-12]) as JSON.
+
+    The output is strict JSON: NumPy and JAX numbers are written as plain
+    numbers and non-finite ones (NaN, inf) as ``null`` ([B-10]). The text is
+    built first and then written to a temporary file in the target folder and
+    renamed, so a failure never leaves a partial file at ``path``. Creates the
+    parent folder; ``path`` must not be a directory.
+    """
+    if not isinstance(res, Mapping) or "chunk" not in res:
         raise ValueError("res must be a result of run_benchmark or run_vjp_ablation")
-    if not isinstance(path, (str, os.PathLike)) or not str(path):
+    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path):
         raise ValueError(f"path must be a file path, got {path!r}")
-    parent = os.path.dirname(os.fspath(path))
-    if parent:
-        os.makedirs(parent, exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(res, f, indent=1, sort_keys=True)
-        f.write("\n")
+    if os.path.isdir(path):
+        raise ValueError(f"path must be a file path, got the directory {os.fspath(path)!r}")
+    text = json.dumps(_json_value(res, ""), indent=1, sort_keys=True, allow_nan=False) + "\n"
+    parent = os.path.dirname(os.path.abspath(os.fspath(path)))
+    os.makedirs(parent, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".bench-", suffix=".tmp", dir=parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        # mkstemp creates the file owner-only; give it the mode of any new file under the umask.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise

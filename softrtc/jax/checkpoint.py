@@ -83,8 +83,9 @@ def checkpoint_checksum(header: Mapping, arrays: Mapping[str, np.ndarray]) -> st
         raise ValueError(f"header must be a mapping, got {type(header).__name__}")
     if not isinstance(arrays, Mapping) or not all(isinstance(k, str) for k in arrays):
         raise ValueError(f"arrays must be a mapping of str name -> array, got {type(arrays).__name__}")
-    if not all(isinstance(k, str) for k in header):
-        raise ValueError("header must be a mapping with str keys")
+    if not _str_keys(header):  # [T-11]: JSON would turn a nested key 1 into "1" silently
+        raise ValueError("header must be a mapping with str keys at every depth (nested non-string keys are "
+                         "rejected, not turned into strings)")
     h = hashlib.sha256()
     body = {k: v for k, v in header.items() if k != "checksum"}
     try:

@@ -1,13 +1,14 @@
 """Weighted corruption in JAX (spec chapter C, 02-training.md); twin of ``softrtc.reference.corruption``.
 
 Batched by broadcasting: ``weights [..., H]``, ``tau [...]``, ``actions`` and
-``noise [..., H, A]`` with the same leading dims (or use ``vmap``).
+``noise [..., H, A]`` with the same leading dims (or use ``vmap``). ``tau`` has
+exactly the weights' batch shape or is one shared scalar; a ``[1]`` tau is not
+broadcast ([N-7]).
 """
 
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
 from . import _validate as v
 
@@ -22,11 +23,9 @@ def token_times(weights, tau) -> jax.Array:
 
 def _tau(w, tau):
     tau = v.array("tau", tau, lo=0.0, hi=1.0)
-    try:
-        ok = jnp.broadcast_shapes(tau.shape + (1,), w.shape) == w.shape
-    except ValueError:
-        ok = False
-    if not ok:  # tau may be shared (a scalar) but must never add batch axes the weights lack
+    # tau is one flow time per example (the batch shape of the weights) or one shared scalar; a [1] or
+    # [B, 1] tau would broadcast, which [N-7] forbids as it would hide a mis-shaped argument.
+    if tau.shape not in ((), w.shape[:-1]):
         raise ValueError(f"tau must have the batch shape of the weights {list(w.shape[:-1])} (or be a scalar), "
                          f"got {list(tau.shape)}")
     return tau

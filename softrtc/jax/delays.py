@@ -23,6 +23,8 @@ from . import _validate as v
 
 DISTRIBUTIONS = _ref.DISTRIBUTIONS
 MAX_DELAY = _ref.MAX_DELAY
+# [N-12] At most 2^31 - 1 draws per sample_delays call: a finite bound, so a huge shape is a ValueError.
+MAX_DRAWS = 2**31 - 1
 
 
 def delay_probs(dist: str, d_min: int, d_max: int, decay=1.0) -> jax.Array:
@@ -83,6 +85,7 @@ def _inverse_cdf(c, d_min, u):
 def sample_delays(key, probs, d_min, shape=()) -> jax.Array:
     """Delays of the given static ``shape`` from a PRNG key ([D-3], [D-4], [N-9]).
 
+    ``shape`` entries are integers >= 0 holding at most 2^31 - 1 draws in all ([N-12]).
     Draws ``u = jax.random.uniform(key, shape)`` in [0, 1) and applies
     :func:`sample_delay`, so a caller holding the same ``u`` gets the same d.
     """
@@ -90,7 +93,9 @@ def sample_delays(key, probs, d_min, shape=()) -> jax.Array:
         shape = (int(shape),)
     if not isinstance(shape, (tuple, list)):
         raise ValueError(f"shape must be an integer or a tuple of integers >= 0, got {shape!r}")
-    shape = tuple(v.check_int("shape entry", s, 0) for s in shape)
+    shape = tuple(v.check_int("shape entry", s, 0, MAX_DRAWS) for s in shape)
+    if int(np.prod(shape, dtype=object)) > MAX_DRAWS:  # object: Python ints, no overflow
+        raise ValueError(f"shape must hold at most {MAX_DRAWS} draws ([N-12]), got {shape}")
     if not (isinstance(key, jax.Array) and (jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
                                             or (key.dtype == jnp.uint32 and key.shape == (2,)))):
         raise ValueError(f"key must be a JAX PRNG key (jax.random.key or jax.random.PRNGKey), got {key!r}")

@@ -24,6 +24,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from softrtc.reference import endpoints as _ref
 
@@ -95,9 +96,7 @@ def _checked(rule: EndpointRule) -> EndpointRule:
         raise ValueError(f"rule.kind must be one of {RULES}, got {rule.kind!r}")
     specs = (("lam", rule.lam, jnp.floating), ("h_max", rule.h_max, jnp.integer), ("length", rule.length, jnp.integer))
     for name, value, kind in specs:
-        if jnp.ndim(value) != 0 or not jnp.issubdtype(jnp.result_type(value), kind):
-            raise ValueError(f"rule.{name} must be a scalar of {'float' if kind is jnp.floating else 'integer'} "
-                             f"dtype, got {jnp.result_type(value)} of shape {list(jnp.shape(value))}")
+        _check_scalar(f"rule.{name}", value, kind)
     if not v.is_traced(rule):
         v.real_value("rule.lam", float(rule.lam), 0.0, float(MAX_WINDOW))
         v.int_value("rule.h_max", rule.h_max, 0, MAX_WINDOW)
@@ -107,6 +106,21 @@ def _checked(rule: EndpointRule) -> EndpointRule:
                 raise ValueError(f"rule.{name} is not a parameter of the {rule.kind!r} rule and must be 0, "
                                  f"got {getattr(rule, name)}")
     return rule
+
+
+def _check_scalar(name: str, value, kind) -> None:
+    """A rule parameter (or code) is a scalar of the given dtype kind; shape and dtype only ([N-7], [N-10])."""
+    want = "float" if kind is jnp.floating else "integer"
+    # A string, None or an object has no numeric dtype (jnp.result_type(None) is float32, so None is explicit).
+    ok = value is not None and not isinstance(value, (str, bytes))
+    if ok:
+        try:
+            dt = jnp.result_type(value)
+        except (TypeError, ValueError):
+            ok = False
+    if not ok or jnp.ndim(value) != 0 or not jnp.issubdtype(dt, kind):
+        got = f"{dt} of shape {list(jnp.shape(value))}" if ok else repr(value)
+        raise ValueError(f"{name} must be a scalar of {want} dtype, got {got}")
 
 
 def from_reference(rule: _ref.EndpointRule) -> EndpointRule:
@@ -136,9 +150,33 @@ def endpoint_by_code(kind, lam, h_max, length, d) -> jax.Array:
 
     A Python int ``kind`` evaluates only its own rule; a traced one evaluates
     all four and selects, so one compiled function serves every rule kind
-    (used by the weight tables, [W-7]). No argument checks: callers check.
+    (used by the weight tables, [W-7]). Arguments are checked like the rule's
+    ([E-1], [N-7]): ``kind`` an integer code in [0, 3] (an index into
+    ``RULES``), ``lam`` a real in [0, 4096], ``h_max``, ``length`` and ``d``
+    integers in [0, 4096], and, for a concrete Python ``kind``, a parameter
+    the rule does not have must be 0. Concrete values are range-checked;
+    traced ones are checked for shape and dtype only ([N-10]).
     """
-    d = jnp.asarray(d, jnp.int32)
+    if isinstance(kind, (str, bool, np.bool_)) or kind is None:
+        raise ValueError(f"kind must be an integer code in [0, {len(RULES) - 1}] (the index of the rule in "
+                         f"{RULES}), got {kind!r}")
+    if isinstance(kind, (int, np.integer)):
+        kind = v.check_int("kind", kind, 0, len(RULES) - 1)
+    else:
+        _check_scalar("kind", kind, jnp.integer)
+        kind = v.int_value("kind", kind, 0, len(RULES) - 1)
+    if v.is_traced(lam):
+        v.real_dtype("lam", lam, "be a real scalar")
+    lam = v.real_value("lam", lam, 0.0, float(MAX_WINDOW))
+    params = {"h_max": v.int_value("h_max", h_max, 0, MAX_WINDOW),
+              "length": v.int_value("length", length, 0, MAX_WINDOW)}
+    if isinstance(kind, int):
+        name = RULES[kind]
+        for pname, value in (("lam", lam), *params.items()):
+            if pname not in _ref.RULE_PARAMETERS[name] and not v.is_traced(value) and float(value) != 0:
+                raise ValueError(f"{pname} is not a parameter of the {name!r} rule and must be 0, got {value}")
+    h_max, length = params["h_max"], params["length"]
+    d = v.int_value("d", d, 0, MAX_WINDOW)
     rules = {
         # ceil(0 - 1e-4) = 0 already gives [E-6]; 1e-4 is [E-2]'s delta.
         "delay_scaled": lambda: jnp.minimum(

@@ -99,6 +99,35 @@ def execute_chunks(chunks, delays, s: int) -> dict:
     return {"actions": ch[ci, ti], "chunk_index": ci, "token_index": ti}
 
 
+def _real_dtype(dtype) -> bool:
+    return dtype != jnp.bool_ and (jnp.issubdtype(dtype, jnp.integer) or jnp.issubdtype(dtype, jnp.floating))
+
+
+def _callback_array(name: str, value, what: str):
+    """What a caller's function returned, as an array of a real dtype ([N-7]); not cast yet."""
+    if isinstance(value, (jax.Array, np.ndarray)) or v.is_traced(value):
+        arr = value
+    else:
+        try:
+            arr = jnp.asarray(value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name} must return {what}, got {type(value).__name__}") from exc
+    if not _real_dtype(arr.dtype):
+        raise ValueError(f"{name} must return {what} of a real (integer or float) dtype, got dtype {arr.dtype}")
+    return arr
+
+
+def _generated(generate, H: int, args, A: int | None = None) -> jax.Array:
+    """``generate(*args)`` checked: a real chunk [H, A] (A = the first chunk's), finite when concrete ([N-7])."""
+    want = f"[H={H}, A]" if A is None else f"[H={H}, A={A}]"
+    chunk = _callback_array("generate", generate(*args), f"a chunk of shape {want}")
+    if chunk.ndim != 2 or chunk.shape[0] != H or chunk.shape[1] < 1 or (A is not None and chunk.shape[1] != A):
+        raise ValueError(f"generate must return chunks of shape {want}, got {list(chunk.shape)}")
+    if not v.is_traced(chunk) and not np.all(np.isfinite(np.asarray(chunk))):
+        raise ValueError("generate must return finite chunks (no NaN or inf)")
+    return jnp.asarray(chunk, jnp.float32)
+
+
 def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
     """Closed-loop execution with a functional environment ([X-2], [X-3], [X-4], [X-6]).
 
@@ -107,6 +136,12 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
       [X-2]) and, inside a ``lax.scan``, with a prior [H, A] and traced d, c
       for requests c >= 1. Randomness comes from ``c`` (e.g. fold it into a key).
     * ``env_step(env_state, action) -> (env_state, obs)``: one control step.
+
+    What the two functions return is checked while tracing ([N-7]): chunks of
+    shape [H, A] with one A throughout, observations of ``obs0``'s shape, a
+    state of ``env_state``'s structure and shapes, all of a real dtype (a
+    complex chunk is an error, not reduced to its real part); a concrete first
+    chunk must be finite. ``obs0`` is a real array with no empty axis.
 
     ``delays [C]`` may be traced (C static). Returns a dict with ``actions
     [C*s, A]``, ``chunks [C, H, A]``, ``priors [C, H, A]`` (zeros for c = 0),
@@ -121,25 +156,47 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
     ds = v.int_array("delays", delays)
     if ds.ndim != 1 or ds.shape[0] < 1:
         raise ValueError(f"delays must have shape [C] with C >= 1, got {list(ds.shape)}")
+    if v.is_traced(obs0) and not _real_dtype(jnp.result_type(obs0)):
+        raise ValueError(f"obs0 must be a real numeric array, got dtype {jnp.result_type(obs0)}")
     obs0 = v.array("obs0", obs0)
+    try:
+        state_spec = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a)), env_state)
+    except TypeError as exc:
+        raise ValueError(f"env_state must be a pytree of arrays, got {type(env_state).__name__}") from exc
+
+    def checked_step(state, a):
+        out = env_step(state, a)
+        if not isinstance(out, (tuple, list)) or len(out) != 2:
+            raise ValueError(f"env_step must return a pair (env_state, obs), got {type(out).__name__}")
+        state, obs = out
+        obs = _callback_array("env_step", obs, f"an observation of obs0's shape {list(obs0.shape)}")
+        if tuple(obs.shape) != tuple(obs0.shape):
+            raise ValueError(f"env_step must return observations of obs0's shape {list(obs0.shape)}, "
+                             f"got {list(obs.shape)}")
+        try:
+            got = jax.tree.map(lambda x: (jnp.shape(x), jnp.result_type(x)), state)
+        except TypeError:
+            got = None
+        if got is None or jax.tree.structure(got) != jax.tree.structure(state_spec) \
+                or jax.tree.leaves(got) != jax.tree.leaves(state_spec):
+            raise ValueError("env_step must return an env_state of the given env_state's tree structure, "
+                             "shapes and dtypes")
+        return state, obs
 
     def run_segment(state, seg):
-        def one(state, a):
-            state, obs = env_step(state, a)
-            return state, obs
-        state, obs_seq = jax.lax.scan(one, state, seg)
+        # A fresh step function per segment, as before the checks: the same program is traced.
+        state, obs_seq = jax.lax.scan(lambda st, a: checked_step(st, a), state, seg)
         return state, obs_seq[-1]
 
-    first = jnp.asarray(generate(obs0, None, jnp.int32(0), jnp.int32(0)), jnp.float32)
-    if first.ndim != 2 or first.shape[0] != H:
-        raise ValueError(f"generate must return chunks of shape [H={H}, A], got {list(first.shape)}")
+    first = _generated(generate, H, (obs0, None, jnp.int32(0), jnp.int32(0)))
+    A = first.shape[1]
     state, obs = run_segment(env_state, first[:s])
 
     def request(carry, inp):
         state, obs, prev = carry
         c, d = inp
         prior = shift_prior(prev, s)
-        new = jnp.asarray(generate(obs, prior, d, c), jnp.float32)
+        new = _generated(generate, H, (obs, prior, d, c), A)
         seg = segment(prev, new, s, d)
         state2, obs2 = run_segment(state, seg)
         return (state2, obs2, new), (seg, new, prior, obs)
@@ -147,7 +204,6 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
     C = ds.shape[0]
     cs = jnp.arange(1, C, dtype=jnp.int32)
     (state, _, _), (segs, news, priors, req_obs) = jax.lax.scan(request, (state, obs, first), (cs, ds[1:]))
-    A = first.shape[1]
     return {
         "actions": jnp.concatenate([first[None, :s], segs], axis=0).reshape(C * s, A),
         "chunks": jnp.concatenate([first[None], news], axis=0),

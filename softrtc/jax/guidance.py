@@ -19,8 +19,8 @@ import numpy as np
 from softrtc.reference import guidance as _ref
 
 from . import _validate as v
-from .sampler import (_at, _runtime, _check_fn, _check_model, _loop, check_batch, check_leading, euler_times,
-                      field_output, naive_conditioning)
+from .sampler import (_at, _runtime, _check_fn, _check_model, _loop, check_batch, check_leading, check_unroll,
+                      euler_times, field_output, naive_conditioning, require)
 from .weights import PARAMETRIZATIONS, SCHEDULES, _prefix_jit
 
 MAX_GUIDANCE = _ref.MAX_GUIDANCE
@@ -100,7 +100,9 @@ def guided_sample(velocity_fn, obs, noise, prior, weights, num_steps: int,
     :func:`softrtc.jax.sampler.naive_sample` ([G-6]).
     """
     _check_fn("velocity_fn", velocity_fn)
+    _require_prior_weights(prior, weights)
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    unroll = check_unroll(unroll)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     # Same runtime time vector as sampler.naive_sample, so that W = 0 is bitwise naive ([G-6]).
     times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
@@ -129,7 +131,9 @@ def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
     [G-6] holds only without it).
     """
     _check_model(model)
+    _require_prior_weights(prior, weights)
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    unroll = check_unroll(unroll)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     cond = naive_conditioning(model, T) if cond is None else cond
     check_leading("cond", cond, (T,))
@@ -137,12 +141,27 @@ def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
 
     if head is None:
         def apply_fn(k, x):
-            return model.apply_conditioned(obs, x, _at(cond, k))
+            return field_output("model.apply_conditioned", model.apply_conditioned(obs, x, _at(cond, k)), x)
     else:
         def apply_fn(k, x):
-            return model.apply_conditioned_split(obs, x, _at(cond, k), head)
+            return _split_output(model.apply_conditioned_split(obs, x, _at(cond, k), head), x, head)
 
     return _guided(apply_fn, obs, x, y, w, T, beta, unroll, head)
+
+
+def _require_prior_weights(prior, weights) -> None:
+    require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
+    require("weights", weights, "an array [H] or [B, H] in [0, 1] (the guidance weights of [G-1])")
+
+
+def _split_output(out, x, head: int) -> tuple:
+    """``apply_conditioned_split`` must return two real arrays [B, head, A] and [B, H - head, A] ([N-7], [P-18])."""
+    name = "model.apply_conditioned_split"
+    if not isinstance(out, (tuple, list)) or len(out) != 2:
+        raise ValueError(f"{name} must return a pair (v[:, :{head}], v[:, {head}:]), got {type(out).__name__}")
+    B, H, A = x.shape
+    return (field_output(f"{name} (first group)", out[0], jax.ShapeDtypeStruct((B, head, A), x.dtype)),
+            field_output(f"{name} (second group)", out[1], jax.ShapeDtypeStruct((B, H - head, A), x.dtype)))
 
 
 def _check_guided_tokens(model, guided_tokens, weights, H: int) -> int:

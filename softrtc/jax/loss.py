@@ -8,13 +8,12 @@ is clamped (then the loss is exactly 0, [L-2]).
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 
 from . import _validate as v
 from .corruption import corrupt
+from .sampler import field_output
 
 ETA = 1e-8
 
@@ -83,6 +82,11 @@ def rtc_loss(velocity_fn, obs, actions, noise, weights, tau, eta=ETA) -> jax.Arr
         raise ValueError(f"tau must have shape [B={B}] (one flow time per example), got {list(jnp.shape(tau))}")
     if tuple(jnp.shape(weights))[:1] != (B,) or jnp.ndim(weights) != 2:
         raise ValueError(f"weights must have shape [B={B}, H], got {list(jnp.shape(weights))}")
+    # obs is checked although only velocity_fn reads it: a mis-shaped or non-finite observation is an
+    # error whatever the field does with it ([N-7]).
+    obs = v.array("obs", obs, ndim=2)
+    if obs.shape[0] != B:
+        raise ValueError(f"obs must have shape [B={B}, O], got {list(obs.shape)}")
     x, tj = corrupt(actions, noise, weights, tau)
-    pred = velocity_fn(obs, x, tj)
+    pred = field_output("velocity_fn", velocity_fn(obs, x, tj), x)
     return batch_loss(pred, actions, noise, weights, eta)

@@ -24,10 +24,10 @@ import jax.numpy as jnp
 from softrtc.reference import methods as _ref
 
 from . import _validate as v
-from .guidance import guidance_prefix_weights, guided_sample, guided_sample_conditioned
-from .sampler import (naive_conditioning, naive_sample, naive_sample_conditioned, rtc_conditioning,
+from .guidance import _check_guided_tokens, guidance_prefix_weights, guided_sample, guided_sample_conditioned
+from .sampler import (naive_conditioning, naive_sample, naive_sample_conditioned,
                       rtc_sample, rtc_sample_conditioned, select_conditioning, conditioning_table,
-                      check_leading)
+                      check_batch, check_leading, check_tree, check_unroll, model_horizon, _check_model)
 from .weights import SoftWindow, check_window, hard_weights, soft_weights
 
 METHODS = _ref.METHODS
@@ -36,9 +36,14 @@ METHODS = _ref.METHODS
 def _delay(H, s, d, B=None):
     """A delay scalar or vector [B]; concrete entries must satisfy [X-1]."""
     hi = min(s, H - s)
+    if d is None or isinstance(d, str):
+        raise ValueError(f"d must be an integer in [0, {hi}] or a non-empty vector [B] of them, got {d!r}")
     if jnp.ndim(d) == 0:
         return v.int_value("d", d, 0, hi)
-    return v.int_array("d", d, shape=(B,), lo=0, hi=hi)
+    d = v.int_array("d", d, shape=(B,), lo=0, hi=hi)
+    if 0 in d.shape:  # [N-12] arrays have no empty axis
+        raise ValueError(f"d must be an integer in [0, {hi}] or a non-empty vector [B] of them, got an empty vector")
+    return d
 
 
 def _check_request(method, noise, prior, s, d, window):
@@ -122,6 +127,7 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     first chunk: naive sampler, d must be 0 ([X-2]).
     """
     H, s, _ = _check_request(method, noise, prior, s, d, window)
+    unroll = check_unroll(unroll)
     if prior is None or method == "naive":
         return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
     w = method_weights(method, H, s, d, window)
@@ -141,9 +147,18 @@ def method_tables(method: str, model, H: int, s: int, num_steps: int, window=Non
     parameter update, outside the rollout loop.
     """
     w = method_weight_table(method, H, s, window)
+    _check_model(model)
+    _check_model_horizon(model, H, "method_tables")
     if method.startswith("train_"):
         return {"weights": w, "cond": conditioning_table(model, w, num_steps)}
     return {"weights": w, "cond": naive_conditioning(model, num_steps)}
+
+
+def _check_model_horizon(model, H: int, where: str) -> None:
+    """A model that declares its chunk length (``horizon``, ``action_chunk_size``) must have this H ([N-7])."""
+    mH = model_horizon(model)
+    if mH is not None and mH != H:
+        raise ValueError(f"model must have the horizon H={H} given to {where}, got a model with H={mH}")
 
 
 def _check_tables(method: str, tables, H: int, s: int, T) -> None:
@@ -172,11 +187,15 @@ def delay_rows(method: str, tables: dict) -> tuple:
     v.check_choice("method", method, METHODS)
     if not isinstance(tables, dict) or set(tables) != {"weights", "cond"}:
         raise ValueError("tables must be the dict returned by method_tables (keys 'weights', 'cond')")
-    w = tables["weights"]
-    if jnp.ndim(w) != 2:
-        raise ValueError(f"tables['weights'] must have shape [D, H], got {list(jnp.shape(w))}")
+    w = v.array("tables['weights']", tables["weights"], ndim=2, lo=0.0, hi=1.0)
     # Only training-time tables carry a delay axis; naive and guided samplers share one conditioning.
     per_delay = method.startswith("train_")
+    if per_delay:
+        # One conditioning per weight row: a table with fewer (or more) rows than weights would be
+        # truncated (or leave rows without weights) silently.
+        check_leading("tables['cond']", tables["cond"], (int(w.shape[0]),))
+    else:
+        check_tree("tables['cond']", tables["cond"])
     return tuple({"weights": w[d],
                   "cond": select_conditioning(tables["cond"], jnp.int32(d)) if per_delay else tables["cond"]}
                  for d in range(int(w.shape[0])))
@@ -186,15 +205,37 @@ def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: in
                             guided_tokens: int | None = None, unroll: bool = True) -> jax.Array:
     """One chunk by ``method`` from a per-delay row of :func:`delay_rows` ([S-6]).
 
-    ``prior`` None means the first chunk: naive sampling, and the row must be
-    that of d = 0. ``guided_tokens`` (guided methods only, e.g. H - s) restricts
+    ``prior`` None means the first chunk: naive sampling, for which the row's
+    weights are not used (pass ``rows[0]``, the row of d = 0 [X-2]).
+    ``guided_tokens`` (guided methods only, e.g. H - s) restricts
     the guided pull-back to tokens j < guided_tokens ([G-7]); see
     :func:`softrtc.jax.guidance.guided_sample_conditioned`.
+
+    The request is checked whole ([S-8]), also where the chunk does not use
+    it: the row's weights ([H], in [0, 1]) and conditioning (leading axis T)
+    for the first chunk and for naive; a given ``guided_tokens`` in
+    [1, H - 1] for every method (for the guided methods also against the
+    row's weights, [G-7]); ``unroll``. Which delay a row belongs to cannot
+    be read from its weights (a window with the "ones" schedule, or the
+    "paper" parametrization, has w_0 = 1 at d = 0 too), so it is not checked.
     """
     v.check_choice("method", method, METHODS)
     if not isinstance(row, dict) or set(row) != {"weights", "cond"}:
         raise ValueError("row must be an entry of delay_rows(...) (keys 'weights', 'cond')")
+    _check_model(model)
+    _, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    H = x.shape[1]
+    unroll = check_unroll(unroll)
+    w = v.array("row['weights']", row["weights"], shape=(H,), lo=0.0, hi=1.0)
+    check_leading("row['cond']", row["cond"], (T,))
+    if guided_tokens is not None:
+        if method.startswith("inference_"):
+            _check_guided_tokens(model, guided_tokens, w, H)
+        else:
+            v.check_int("guided_tokens", guided_tokens, 1, H - 1)
     if prior is None or method == "naive":
+        if prior is not None:
+            v.array("prior", prior, shape=x.shape)  # naive ignores it, but it must be a chunk batch ([S-8])
         cond = None if method.startswith("train_") else row["cond"]
         return naive_sample_conditioned(model, obs, noise, num_steps, cond=cond, unroll=unroll)
     if method.startswith("inference_"):
@@ -221,6 +262,7 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     H, s, dd = _check_request(method, noise, prior, s, d, window)
     if not isinstance(restrict_guidance, bool):
         raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
+    unroll = check_unroll(unroll)
     if tables is not None:
         _check_tables(method, tables, H, s, num_steps)
     naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]

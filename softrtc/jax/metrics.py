@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softrtc.reference import metrics as _ref
+from softrtc.reference.delays import MAX_DELAY
 
 from . import _validate as v
 
@@ -82,6 +83,8 @@ def switch_mask(chunk_index) -> jax.Array:
     The static-shape form of the reference's ``switch_steps`` (``jnp.nonzero(mask)``).
     """
     ci = v.int_array("chunk_index", chunk_index, shape=(None,))
+    if ci.shape[0] < 1:  # [N-12]: no empty axis (the mask would get an entry of its own)
+        raise ValueError("chunk_index must be a non-empty 1-D integer array [N], got shape [0]")
     return jnp.concatenate([jnp.zeros((1,), bool), ci[1:] != ci[:-1]])
 
 
@@ -92,9 +95,7 @@ def boundary_jump(actions, chunk_index, length=None) -> jax.Array:
     ``chunk_index`` is concrete, and traced inputs without a switch give NaN (0/0).
     """
     a = _actions(actions)
-    ci = jnp.asarray(chunk_index)
-    if ci.shape != (a.shape[0],):
-        raise ValueError(f"chunk_index must have shape [{a.shape[0]}], got {list(ci.shape)}")
+    ci = v.int_array("chunk_index", chunk_index, shape=(a.shape[0],))
     mask = switch_mask(ci)
     if length is not None:
         mask = mask & (jnp.arange(a.shape[0]) < v.int_value("length", length, 1, a.shape[0]))
@@ -111,10 +112,17 @@ def _boundary_jump(a, mask):
 
 def solve_rate(solved) -> jax.Array:
     """Fraction of episodes solved ([M-4]); solved is a non-empty 1-D boolean array."""
-    s = jnp.asarray(solved)
-    if s.ndim != 1 or s.size == 0 or s.dtype != jnp.bool_:
-        raise ValueError("solved must be a non-empty 1-D boolean array")
-    return jnp.mean(s.astype(jnp.float32))
+    if v.is_traced(solved):
+        s = solved
+    else:
+        try:
+            s = np.asarray(solved)
+        except (TypeError, ValueError) as exc:  # e.g. ragged lists
+            raise ValueError(f"solved must be a non-empty 1-D boolean array, got {type(solved).__name__}") from exc
+    if s.ndim != 1 or s.size == 0 or s.dtype != np.bool_:
+        raise ValueError(f"solved must be a non-empty 1-D boolean array, got dtype {s.dtype} and shape "
+                         f"{list(s.shape)}")
+    return jnp.mean(jnp.asarray(s).astype(jnp.float32))
 
 
 def standard_error(values) -> jax.Array:
@@ -137,9 +145,13 @@ def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -
     ``confidence`` is static.
     """
     x = v.array("values", values, ndim=1)
+    if x.shape[0] > _ref.MAX_VALUES:
+        raise ValueError(f"values must hold at most {_ref.MAX_VALUES} entries ([N-12]), got {x.shape[0]}")
     idx = v.int_array("indices", indices, lo=0, hi=max(x.shape[0] - 1, 0))
-    if idx.ndim != 2 or idx.shape[1] != x.shape[0] or not jnp.issubdtype(idx.dtype, jnp.integer):
-        raise ValueError(f"indices must be an integer array [B, {x.shape[0]}] with entries in [0, {x.shape[0] - 1}]")
+    if idx.ndim != 2 or not 1 <= idx.shape[0] <= _ref.MAX_RESAMPLES or idx.shape[1] != x.shape[0] \
+            or not jnp.issubdtype(idx.dtype, jnp.integer):
+        raise ValueError(f"indices must be an integer array [B, {x.shape[0]}], 1 <= B <= {_ref.MAX_RESAMPLES}, "
+                         f"with entries in [0, {x.shape[0] - 1}], got shape {list(idx.shape)}")
     if not v.is_traced(idx) and idx.size and (int(idx.min()) < 0 or int(idx.max()) >= x.shape[0]):
         raise ValueError(f"indices must be an integer array [B, {x.shape[0]}] with entries in [0, {x.shape[0] - 1}]")
     c = v.check_real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
@@ -160,6 +172,11 @@ def bootstrap_interval(values, num_resamples: int = 10000, seed: int = 0, confid
 
 
 def is_high_delay(d) -> jax.Array:
-    """d in {3, 4} ([M-7]); ``d`` may be traced or an integer array."""
-    d = v.int_array("d", d, lo=0)
+    """d in {3, 4} ([M-7]); ``d`` may be traced or an integer array (no empty axis).
+
+    Concrete delays must lie in [0, 4096] ([N-12]); traced ones are checked for dtype only.
+    """
+    d = v.int_array("d", d, lo=0, hi=MAX_DELAY)
+    if 0 in d.shape:
+        raise ValueError(f"d must have at least one entry along every axis, got shape {list(d.shape)}")
     return (d == HIGH_DELAYS[0]) | (d == HIGH_DELAYS[1])

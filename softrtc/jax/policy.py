@@ -92,6 +92,16 @@ def _check_finite(name: str, arr: jax.Array) -> None:
         raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
 
 
+def _check_nonempty(name: str, arr: jax.Array) -> None:
+    # [N-12] arrays have no empty axis; a shape check, free under jit.
+    if 0 in tuple(arr.shape):
+        raise ValueError(f"{name} must have at least one entry along every axis, got shape {tuple(arr.shape)}")
+
+
+# [P-3] Upper bound of the embedding size: far beyond any network, small enough for linspace.
+_MAX_EMBEDDING_DIM = 1 << 24
+
+
 def _check_unit_interval(name: str, arr: jax.Array) -> None:
     if _is_tracer(arr):
         return
@@ -139,10 +149,12 @@ def sincos_time_embedding(t: Any, embedding_dim: int) -> jax.Array:
     >>> sincos_time_embedding(jnp.zeros((2, 3)), 4).tolist()[0][0]
     [0.0, 0.0, 1.0, 1.0]
     """
-    embedding_dim = _check_pos_int("embedding_dim", embedding_dim)
-    if embedding_dim % 2:
-        raise ValueError(f"embedding_dim must be even, got {embedding_dim}")
+    if isinstance(embedding_dim, bool) or not isinstance(embedding_dim, (int, np.integer)) \
+            or not 2 <= embedding_dim <= _MAX_EMBEDDING_DIM or embedding_dim % 2:
+        raise ValueError(f"embedding_dim must be an even integer in [2, {_MAX_EMBEDDING_DIM}], got {embedding_dim!r}")
+    embedding_dim = int(embedding_dim)
     t = _as_float_array("t", t, allow_int=True)
+    _check_nonempty("t", t)
     _check_unit_interval("t", t)
     fraction = jnp.linspace(0.0, 1.0, embedding_dim // 2)
     period = MIN_PERIOD * (MAX_PERIOD / MIN_PERIOD) ** fraction
@@ -167,7 +179,8 @@ def layer_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
     (each guided sampler step runs nine of these backwards).
 
     ``norm`` must be an ``nnx.LayerNorm`` and ``x`` a floating array whose last
-    axis has its ``num_features`` entries ([P-15]).
+    axis has its ``num_features`` entries, with no empty axis ([P-15]). Only
+    shapes and dtypes are checked (free under ``jit``), not values.
     """
     if not isinstance(norm, nnx.LayerNorm):
         raise ValueError(f"norm must be an nnx.LayerNorm, got {type(norm).__name__}")
@@ -175,6 +188,12 @@ def layer_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
     if x.ndim < 1 or x.shape[-1] != norm.num_features:
         raise ValueError(f"x must have shape [..., {norm.num_features}] (the norm's num_features), "
                          f"got {tuple(x.shape)}")
+    _check_nonempty("x", x)
+    return _layer_norm(norm, x)
+
+
+def _layer_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
+    """:func:`layer_norm` without the argument checks (for the network's own, already valid, activations)."""
 
     @jax.custom_vjp
     def ln(x):
@@ -215,12 +234,15 @@ def gelu(x: jax.Array) -> jax.Array:
     it out in a kernel of its own: one more pass over the largest activations
     (the token-mixing hidden layer, ``[B, C, 64]``) per layer and step.
 
-    ``x`` is a floating array of any shape ([P-15]).
+    ``x`` is a floating array of any shape with no empty axis ([P-15]); only
+    its shape and dtype are checked (free under ``jit``), not its values.
 
     >>> round(float(gelu(jnp.float32(1.0))), 4)
     0.8412
     """
-    return _gelu(_as_float_array("x", x))
+    x = _as_float_array("x", x)
+    _check_nonempty("x", x)
+    return _gelu(x)
 
 
 @jax.custom_vjp
@@ -275,11 +297,11 @@ def autodiff_vjps(*, layer_norm: bool = False, gelu: bool = False):
 
 
 def _block_norm(norm: nnx.LayerNorm, x: jax.Array) -> jax.Array:
-    return norm(x) if _AUTODIFF["layer_norm"] else layer_norm(norm, x)
+    return norm(x) if _AUTODIFF["layer_norm"] else _layer_norm(norm, x)
 
 
 def _block_gelu(x: jax.Array) -> jax.Array:
-    return nnx.gelu(x) if _AUTODIFF["gelu"] else gelu(x)
+    return nnx.gelu(x) if _AUTODIFF["gelu"] else _gelu(x)
 
 
 _BLOCK_LINEARS = ("token_mix_in", "token_mix_out", "channel_mix_in", "channel_mix_out")
@@ -335,6 +357,8 @@ class MLPMixerBlock(nnx.Module):
         for name, value in (("token_dim", token_dim), ("token_hidden_dim", token_hidden_dim),
                             ("channel_dim", channel_dim), ("channel_hidden_dim", channel_hidden_dim)):
             _check_pos_int(name, value)
+        if not isinstance(rngs, nnx.Rngs):
+            raise ValueError(f"rngs must be an nnx.Rngs (e.g. nnx.Rngs(0)), got {type(rngs).__name__}")
         self.token_mix_in = nnx.Linear(token_dim, token_hidden_dim, use_bias=False, rngs=rngs)
         self.token_mix_out = nnx.Linear(token_hidden_dim, token_dim, use_bias=False, rngs=rngs)
         self.channel_mix_in = nnx.Linear(channel_dim, channel_hidden_dim, use_bias=False, rngs=rngs)
@@ -346,29 +370,88 @@ class MLPMixerBlock(nnx.Module):
         self.adaln_1 = nnx.Linear(channel_dim, 3 * channel_dim, kernel_init=zeros, rngs=rngs)
         self.adaln_2 = nnx.Linear(channel_dim, 3 * channel_dim, kernel_init=zeros, rngs=rngs)
 
+    # ------------------------------------------------------------------ input checks
+    # Python-level, at trace time: shapes and dtypes always, values only of concrete arrays ([P-15]).
+    # The network itself calls the unchecked `_token_mixing`, `_channel_mixing` and `_modulation`.
+
+    def _check_x(self, x: Any, tokens: int | None) -> jax.Array:
+        """``x [B, h, C]``: ``h = H`` for token mixing (``tokens``), any ``h >= 1`` for channel mixing."""
+        x = _as_float_array("x", x)
+        H, C = self.token_mix_in.in_features, self.channel_mix_in.in_features
+        if x.ndim != 3 or x.shape[2] != C or (tokens is not None and x.shape[1] != tokens):
+            want = f"[B, {H}, {C}]" if tokens is not None else f"[B, h, {C}]"
+            raise ValueError(f"x must have shape {want}, got {list(x.shape)}")
+        _check_nonempty("x", x)
+        _check_finite("x", x)
+        return x
+
+    def _check_modulation(self, name: str, m: Any, x: jax.Array, *, rank3: bool = False) -> jax.Array:
+        """A modulation ``[b, h, 3C]`` (or ``[h, 3C]`` unless ``rank3``), b in {1, B}, h in {1, x's h}."""
+        m = _as_float_array(name, m)
+        B, h, C = x.shape[0], x.shape[1], self.channel_mix_in.in_features
+        ok = m.ndim == 3 or (m.ndim == 2 and not rank3)
+        ok = ok and m.shape[-1] == 3 * C and m.shape[-2] in (1, h) and (m.ndim == 2 or m.shape[0] in (1, B))
+        if not ok:
+            form = "" if rank3 else f" (or [h, {3 * C}])"
+            raise ValueError(f"{name} must have shape [b, h, {3 * C}]{form} with b in {{1, {B}}} and "
+                             f"h in {{1, {h}}}, got {list(m.shape)}")
+        _check_finite(name, m)
+        return m
+
+    def _check_block_pullback(self, pullback: Any, names: tuple) -> Mapping | None:
+        if pullback is None:
+            return None
+        want = {n: tuple(getattr(self, n).kernel.shape)[::-1] for n in _BLOCK_LINEARS}
+        ok = isinstance(pullback, Mapping) and set(pullback) == set(want)
+        if ok:
+            for n in names:
+                leaf = pullback[n]
+                dt = getattr(leaf, "dtype", None)
+                ok = ok and tuple(getattr(leaf, "shape", ())) == want[n] and dt is not None \
+                    and jnp.issubdtype(dt, jnp.floating)
+        if not ok:
+            raise ValueError("pullback must be this block's entry of FlowPolicy.pullback_kernels() (keys and "
+                             f"floating transposed kernels of shapes {want}), or None")
+        return pullback
+
+    # ------------------------------------------------------------------ public API
+
     def modulation(self, time_features: jax.Array) -> dict[str, jax.Array]:
-        """``{"adaln_1": [..., 3C], "adaln_2": [..., 3C]}`` from time-MLP features ``[..., C]`` [P-11]."""
+        """``{"adaln_1": [..., 3C], "adaln_2": [..., 3C]}`` from time-MLP features ``[..., C]`` [P-11].
+
+        ``time_features`` is a floating array with last axis ``C`` and no empty axis ([P-15]).
+        """
+        f = _as_float_array("time_features", time_features)
+        C = self.channel_mix_in.in_features
+        if f.ndim < 1 or f.shape[-1] != C:
+            raise ValueError(f"time_features must have shape [..., {C}], got {list(f.shape)}")
+        _check_nonempty("time_features", f)
+        _check_finite("time_features", f)
+        return self._modulation(f)
+
+    def _modulation(self, time_features: jax.Array) -> dict[str, jax.Array]:
         return {"adaln_1": self.adaln_1(time_features), "adaln_2": self.adaln_2(time_features)}
 
     def __call__(self, x: jax.Array, m1: jax.Array, m2: jax.Array) -> jax.Array:
         """One block on ``x [B, H, C]`` with modulations ``m1``, ``m2`` ``[b, h, 3C]`` [P-4], [P-15]."""
-        x = _as_float_array("x", x)
-        H, C = self.token_mix_in.in_features, self.channel_mix_in.in_features
-        if x.ndim != 3 or x.shape[1:] != (H, C):
-            raise ValueError(f"x must have shape [B, {H}, {C}], got {list(x.shape)}")
-        _check_finite("x", x)
-        for name, m in (("m1", m1), ("m2", m2)):
-            m = _as_float_array(name, m)
-            if m.ndim != 3 or m.shape[0] not in (1, x.shape[0]) or m.shape[1] not in (1, H) or m.shape[2] != 3 * C:
-                raise ValueError(f"{name} must have shape [b, h, {3 * C}] with b in {{1, {x.shape[0]}}} and "
-                                 f"h in {{1, {H}}}, got {list(m.shape)}")
-        return self.channel_mixing(self.token_mixing(x, m1), m2)
+        x = self._check_x(x, self.token_mix_in.in_features)
+        m1 = self._check_modulation("m1", m1, x, rank3=True)
+        m2 = self._check_modulation("m2", m2, x, rank3=True)
+        return self._channel_mixing(self._token_mixing(x, m1), m2)
 
     def token_mixing(self, x: jax.Array, m1: jax.Array, pullback: Mapping | None = None) -> jax.Array:
         """First half of the block: modulated token MLP along H plus the gated residual [P-4].
 
-        ``pullback`` (optional) is this block's entry of :meth:`FlowPolicy.pullback_kernels` [P-19].
+        ``x`` is ``[B, H, C]``; ``m1`` is ``[b, h, 3C]`` or ``[h, 3C]`` with b in {1, B}
+        and h in {1, H}. ``pullback`` (optional) is this block's entry of
+        :meth:`FlowPolicy.pullback_kernels` [P-19]. Shapes and dtypes are checked
+        while tracing, values only when concrete ([P-15]).
         """
+        x = self._check_x(x, self.token_mix_in.in_features)
+        m1 = self._check_modulation("m1", m1, x)
+        return self._token_mixing(x, m1, self._check_block_pullback(pullback, ("token_mix_in", "token_mix_out")))
+
+    def _token_mixing(self, x: jax.Array, m1: jax.Array, pullback: Mapping | None = None) -> jax.Array:
         pb = pullback or {}
         # Split order (scale, shift, gate) is fixed by the released checkpoints [P-4].
         scale_1, shift_1, gate_1 = jnp.split(m1, 3, axis=-1)
@@ -382,8 +465,16 @@ class MLPMixerBlock(nnx.Module):
     def channel_mixing(self, x: jax.Array, m2: jax.Array, pullback: Mapping | None = None) -> jax.Array:
         """Second half of the block: modulated channel MLP, token by token, plus the gated residual [P-4].
 
-        Acts on each token separately, so it may be applied to any subset of tokens [P-18].
+        Acts on each token separately, so it may be applied to any subset of tokens [P-18]:
+        ``x`` is ``[B, h, C]`` with ``h >= 1``, ``m2`` is ``[b, h', 3C]`` or ``[h', 3C]``
+        with b in {1, B} and h' in {1, h}. ``pullback`` as in :meth:`token_mixing`.
         """
+        x = self._check_x(x, None)
+        m2 = self._check_modulation("m2", m2, x)
+        return self._channel_mixing(x, m2,
+                                    self._check_block_pullback(pullback, ("channel_mix_in", "channel_mix_out")))
+
+    def _channel_mixing(self, x: jax.Array, m2: jax.Array, pullback: Mapping | None = None) -> jax.Array:
         pb = pullback or {}
         scale_2, shift_2, gate_2 = jnp.split(m2, 3, axis=-1)
         y = _block_norm(self.norm_2, x) * (1 + scale_2) + shift_2
@@ -488,6 +579,13 @@ class FlowPolicy(nnx.Module):
                     f"cond{path} must have shape [b, h, {feat}] or [h, {feat}] with b in {{1, {batch}}} and "
                     f"h in {{1, {h}}}, got {shape}"
                 )
+            # [N-7], [P-15]: a real floating dtype (bool, integer and complex leaves are not cast); the
+            # dtype is known while tracing, the values only of concrete leaves.
+            dt = getattr(a, "dtype", None)
+            if dt is None or not jnp.issubdtype(dt, jnp.floating):
+                raise ValueError(f"cond{path} must have a real floating dtype (as returned by time_conditioning), "
+                                 f"got {dt}")
+            _check_finite(f"cond{path}", a)
 
         for i, entry in enumerate(layers):
             if not isinstance(entry, Mapping) or set(entry) != {"adaln_1", "adaln_2"}:
@@ -517,10 +615,11 @@ class FlowPolicy(nnx.Module):
         h = self.action_chunk_size
         if t.ndim < 1 or t.shape[-1] not in (1, h):
             raise ValueError(f"t must have shape [..., {h}] or [..., 1], got {tuple(t.shape)}")
+        _check_nonempty("t", t)
         _check_unit_interval("t", t)
         feats = self.time_mlp(sincos_time_embedding(t, self.channel_dim))
         return {
-            _COND_LAYERS: tuple(block.modulation(feats) for block in self.mlp_stack),
+            _COND_LAYERS: tuple(block._modulation(feats) for block in self.mlp_stack),
             _COND_FINAL: self.final_adaln(feats),
         }
 
@@ -635,9 +734,9 @@ class FlowPolicy(nnx.Module):
             hdn = self.in_proj(jnp.concatenate([x, obs_tok], axis=-1))
         layers = cond[_COND_LAYERS]
         for block, m, kt in zip(self.mlp_stack[:-1], layers[:-1], pb[_PB_LAYERS][:-1]):
-            hdn = block.channel_mixing(block.token_mixing(hdn, m["adaln_1"], kt), m["adaln_2"], kt)
+            hdn = block._channel_mixing(block._token_mixing(hdn, m["adaln_1"], kt), m["adaln_2"], kt)
         last = pb[_PB_LAYERS][-1]
-        hdn = self.mlp_stack[-1].token_mixing(hdn, layers[-1]["adaln_1"], last)
+        hdn = self.mlp_stack[-1]._token_mixing(hdn, layers[-1]["adaln_1"], last)
         m2, fin, out_t = layers[-1]["adaln_2"], cond[_COND_FINAL], pb.get("out_proj")
         if head is None:
             return self._output(hdn, m2, fin, last, out_t)
@@ -648,7 +747,7 @@ class FlowPolicy(nnx.Module):
     def _output(self, hdn: jax.Array, m2: jax.Array, fin: jax.Array, last: Mapping | None,
                 out_t: jax.Array | None) -> jax.Array:
         """The per-token layers: last block's channel mixing, final modulated LayerNorm, output projection."""
-        hdn = self.mlp_stack[-1].channel_mixing(hdn, m2, last)
+        hdn = self.mlp_stack[-1]._channel_mixing(hdn, m2, last)
         scale, shift = jnp.split(fin, 2, axis=-1)
         hdn = _block_norm(self.final_norm, hdn) * (1 + scale) + shift
         return _linear(self.out_proj, hdn, out_t)
@@ -740,7 +839,8 @@ def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
     ``pure_dict`` is a nested dict as written by ``nnx.state(model).to_pure_dict()``
     (layer indices as ints; digit strings are accepted too). Every key path must
     match, with the exact shape and a floating dtype and finite values; leaves are
-    cast to the model's dtype. Raises ``ValueError`` naming the key path (e.g.
+    cast to the model's dtype and must still be finite after the cast (a float64
+    ``1e39`` is rejected, as it would become ``inf`` in float32). Raises ``ValueError`` naming the key path (e.g.
     ``mlp_stack/0/adaln_1/kernel``) and the expected shape. Returns ``model``.
     """
     if not isinstance(model, FlowPolicy):
@@ -779,7 +879,13 @@ def load_pure_dict(model: FlowPolicy, pure_dict: Mapping) -> FlowPolicy:
             raise ValueError(f"{name} must have a floating dtype, got {arr.dtype}")
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"{name} must contain only finite values")
-        loaded[path] = jnp.asarray(arr, dtype=ref.dtype)
+        # Finite in float64 may still overflow the parameter dtype (1e39 -> inf in float32): check after the cast.
+        with np.errstate(over="ignore"):
+            cast = arr.astype(ref.dtype)
+        if not np.all(np.isfinite(cast)):
+            raise ValueError(f"{name} must contain only finite values within the range of {np.dtype(ref.dtype)} "
+                             f"(the parameter dtype)")
+        loaded[path] = jnp.asarray(cast)
 
     nested: dict = {}
     for path, arr in loaded.items():

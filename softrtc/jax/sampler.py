@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _validate as v
 
@@ -63,6 +64,8 @@ def blend(x, prior, weights) -> jax.Array:
 def blend_time(t, weights) -> jax.Array:
     """t~_j = w_j + (1 - w_j) t ([S-3]); t a scalar or broadcastable to weights' leading dims."""
     w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.ndim < 1:
+        raise ValueError("weights must have shape [..., H] (at least one axis), got a scalar")
     t = v.array("t", t, lo=0.0, hi=1.0)
     if t.ndim and t.shape != w.shape[:-1]:
         raise ValueError(f"t must be a scalar or have the batch shape of weights {list(w.shape[:-1])}, "
@@ -89,6 +92,28 @@ def check_batch(obs, noise, prior=None, weights=None, num_steps=None):
     return obs, x, y, w, T
 
 
+def require(name: str, value, what: str):
+    """An argument the function needs: None is a ValueError naming it, not a TypeError later ([N-7])."""
+    if value is None:
+        raise ValueError(f"{name} must be {what}, got None")
+    return value
+
+
+def check_unroll(unroll) -> bool:
+    """The samplers' ``unroll`` flag: True or False, no truthy stand-ins ([N-7])."""
+    return v.check_bool("unroll", unroll)
+
+
+def model_horizon(model) -> int | None:
+    """The chunk length H of a conditioned ``model``: its ``horizon`` (the reference field) or
+    ``action_chunk_size`` (the flow policy); None when it declares neither."""
+    for attr in ("horizon", "action_chunk_size"):
+        H = getattr(model, attr, None)
+        if isinstance(H, (int, np.integer)) and not isinstance(H, bool):
+            return int(H)
+    return None
+
+
 def _check_fn(name, fn):
     if not callable(fn):
         raise ValueError(f"{name} must be callable as {name}(obs [B, O], x [B, H, A], t [B, H]) -> v [B, H, A]")
@@ -98,6 +123,15 @@ def _check_model(model):
     if not (callable(getattr(model, "time_conditioning", None))
             and callable(getattr(model, "apply_conditioned", None))):
         raise ValueError("model must provide time_conditioning(t) and apply_conditioned(obs, x, cond)")
+
+
+def _check_model_h(name: str, w, model) -> None:
+    """Weights [..., H] must have the model's H as their last axis: a last axis of 1 would be read by
+    ``time_conditioning`` as one time shared by all tokens ([S-3], [N-7])."""
+    H = model_horizon(model)
+    if H is not None and w.shape[-1] != H:
+        raise ValueError(f"{name} must have shape [..., H] with the model's H={H} as last axis, "
+                         f"got {list(w.shape)}")
 
 
 def _loop(step, x, T, unroll):
@@ -126,15 +160,32 @@ def _at(tree, k):
     return jax.tree_util.tree_map(lambda a: a[k], tree)
 
 
+def check_tree(name: str, tree, min_ndim: int = 1) -> list:
+    """A conditioning tree: a non-empty tree of real arrays with at least ``min_ndim`` axes ([N-7]).
+
+    Returns its leaves. Only shapes and dtypes are read (traced leaves included).
+    """
+    leaves = jax.tree_util.tree_leaves(tree)
+    if not leaves:
+        raise ValueError(f"{name} must be a conditioning tree of arrays, got {type(tree).__name__}")
+    for leaf in leaves:
+        if not hasattr(leaf, "shape") or not hasattr(leaf, "dtype"):
+            raise ValueError(f"{name} must be a conditioning tree of arrays, got a leaf of type "
+                             f"{type(leaf).__name__}")
+        v.real_dtype(name, leaf, "be a conditioning tree of real arrays")
+        if leaf.ndim < min_ndim:
+            raise ValueError(f"{name} must be a conditioning tree of arrays with at least {min_ndim} axes, "
+                             f"got a leaf of shape {list(leaf.shape)}")
+    return leaves
+
+
 def check_leading(name: str, tree, lead: tuple) -> None:
     """Every leaf of a conditioning tree starts with the axes ``lead`` (e.g. (T,) or (D, T)) ([N-7]).
 
     A table built for another number of steps or delays would otherwise be
     indexed out of range, which JAX clamps instead of raising.
     """
-    leaves = jax.tree_util.tree_leaves(tree)
-    if not leaves:
-        raise ValueError(f"{name} must be a conditioning tree of arrays, got {type(tree).__name__}")
+    leaves = check_tree(name, tree)
     for leaf in leaves:
         if tuple(jnp.shape(leaf)[:len(lead)]) != tuple(lead):
             raise ValueError(f"{name} must have leading axes {list(lead)} (built for these steps/delays), "
@@ -142,12 +193,14 @@ def check_leading(name: str, tree, lead: tuple) -> None:
 
 
 def field_output(name: str, value, x) -> jax.Array:
-    """A velocity returned by ``name`` must have the state's shape ([N-7]).
+    """A velocity returned by ``name`` must be a real array of the state's shape ([N-7]).
 
-    Checked at trace time (shapes are static, so it costs nothing per call);
-    XLA would otherwise broadcast a [A] or [B, H, 1] velocity silently. Values
-    cannot be checked inside a compiled call; the reference also rejects NaN.
+    Checked at trace time (shapes and dtypes are static, so it costs nothing
+    per call); XLA would otherwise broadcast a [A] or [B, H, 1] velocity
+    silently, and promote the state to complex. Values cannot be checked
+    inside a compiled call; the reference also rejects NaN.
     """
+    v.real_dtype(name, value, "return a real numeric array (integer or float)")
     if tuple(jnp.shape(value)) != tuple(x.shape):
         raise ValueError(f"{name} must return an array of the state's shape {list(x.shape)}, "
                          f"got {list(jnp.shape(value))}")
@@ -161,6 +214,7 @@ def naive_sample(velocity_fn, obs, noise, num_steps: int, *, unroll: bool = True
     """Naive Euler sampler ([S-1], [S-2]): x += v(obs, x, t_k 1) / T; returns x^T [B, H, A]."""
     _check_fn("velocity_fn", velocity_fn)
     obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    unroll = check_unroll(unroll)
     # t_k 1 is computed as the blended time of zero weights, 0 + (1 - 0) t_k (exactly t_k),
     # so that the RTC sampler with w = 0 runs the same arithmetic ([S-7]).
     times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
@@ -177,7 +231,10 @@ def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unrol
     With w = 0 (e.g. d = 0) it is bitwise :func:`naive_sample` ([S-7]).
     """
     _check_fn("velocity_fn", velocity_fn)
+    require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
+    require("weights", weights, "an array [H] or [B, H] in [0, 1]")
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    unroll = check_unroll(unroll)
     times, wb = _runtime(euler_times(T), jnp.broadcast_to(w, x.shape[:2]))
     wx = wb[..., None]
 
@@ -195,6 +252,8 @@ def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unrol
 def rtc_time_table(weights, num_steps: int) -> jax.Array:
     """Blended times t~^k = w + (1 - w) t_k for all steps ([S-3]): weights [..., H] -> [T, ..., H]."""
     w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.ndim < 1:
+        raise ValueError("weights must have shape [..., H] (at least one axis), got a scalar")
     times = euler_times(num_steps)
     t = times.reshape((-1,) + (1,) * w.ndim)
     return w + (1.0 - w) * t
@@ -209,14 +268,17 @@ def naive_conditioning(model, num_steps: int):
 def rtc_conditioning(model, weights, num_steps: int):
     """Time conditioning of every RTC step, ``model.time_conditioning(t~ [T, b, H])`` ([S-3]).
 
-    ``weights [H]`` gives b = 1 (shared by the batch), ``[B, H]`` gives b = B.
+    ``weights [H]`` gives b = 1 (shared by the batch), ``[B, H]`` gives b = B. The last axis
+    must be the model's H (``model.horizon`` or ``model.action_chunk_size`` where the model
+    declares one): ``time_conditioning`` would read a last axis of 1 as one shared time.
     """
     _check_model(model)
     w = v.array("weights", weights, lo=0.0, hi=1.0)
+    if w.ndim not in (1, 2):
+        raise ValueError(f"weights must have shape [H] or [B, H], got {list(w.shape)}")
+    _check_model_h("weights", w, model)
     if w.ndim == 1:
         w = w[None]
-    if w.ndim != 2:
-        raise ValueError(f"weights must have shape [H] or [B, H], got {list(w.shape)}")
     return model.time_conditioning(rtc_time_table(w, num_steps))
 
 
@@ -225,10 +287,12 @@ def conditioning_table(model, weight_table, num_steps: int):
 
     Build it once (e.g. from ``weights.weight_table`` or ``methods.method_weight_table``)
     and pick a delay with :func:`select_conditioning`; it depends on the model's
-    parameters and the weights only.
+    parameters and the weights only. The table's last axis must be the model's H
+    (as for :func:`rtc_conditioning`).
     """
     _check_model(model)
     wt = v.array("weight_table", weight_table, ndim=2, lo=0.0, hi=1.0)
+    _check_model_h("weight_table", wt, model)
     # rtc_time_table puts the step axis first: [T, D, 1, H] -> [D, T, 1, H].
     return model.time_conditioning(jnp.swapaxes(rtc_time_table(wt[:, None, :], num_steps), 0, 1))
 
@@ -236,14 +300,16 @@ def conditioning_table(model, weight_table, num_steps: int):
 def select_conditioning(table, d):
     """Rows of a :func:`conditioning_table` for delay ``d``: a scalar gives leaves [T, 1, ...],
     per-example delays [B] give [T, B, ...]. Traced ``d`` must lie in [0, D-1]."""
-    leaves = jax.tree_util.tree_leaves(table)
-    if not leaves:
+    if not jax.tree_util.tree_leaves(table):
         raise ValueError(f"table must be a conditioning_table (a tree of [D, T, ...] arrays), got {table!r}")
-    D = int(jnp.shape(leaves[0])[0])
+    leaves = check_tree("table", table, min_ndim=2)
+    D = int(leaves[0].shape[0])
     check_leading("table", table, (D,))
-    if jnp.ndim(d) > 1:
-        raise ValueError(f"d must be an integer scalar or a vector [B], got shape {list(jnp.shape(d))}")
-    d = v.int_value("d", d, 0, D - 1) if jnp.ndim(d) == 0 else v.int_array("d", d, lo=0, hi=D - 1)
+    if d is None or isinstance(d, str) or jnp.ndim(d) > 1:
+        raise ValueError(f"d must be an integer scalar or a non-empty vector [B], got {d!r}")
+    d = v.int_value("d", d, 0, D - 1) if jnp.ndim(d) == 0 else v.int_array("d", d, shape=(None,), lo=0, hi=D - 1)
+    if d.ndim and d.shape[0] == 0:
+        raise ValueError("d must be an integer scalar or a non-empty vector [B], got an empty vector ([N-12])")
     if d.ndim == 0:
         return _at(table, d)
     return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a[d][:, :, 0], 0, 1), table)
@@ -257,11 +323,12 @@ def naive_sample_conditioned(model, obs, noise, num_steps: int, *, cond=None,
     """
     _check_model(model)
     obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    unroll = check_unroll(unroll)
     cond = naive_conditioning(model, T) if cond is None else cond
     check_leading("cond", cond, (T,))
 
     def step(k, x):
-        return x + model.apply_conditioned(obs, x, _at(cond, k)) / T
+        return x + field_output("model.apply_conditioned", model.apply_conditioned(obs, x, _at(cond, k)), x) / T
 
     return _loop(step, x, T, unroll)
 
@@ -276,13 +343,16 @@ def rtc_sample_conditioned(model, obs, noise, prior, weights, num_steps: int, *,
     guarantees that ``cond`` belongs to ``weights``.
     """
     _check_model(model)
+    require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
+    require("weights", weights, "an array [H] or [B, H] in [0, 1]")
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    unroll = check_unroll(unroll)
     cond = rtc_conditioning(model, w, T) if cond is None else cond
     check_leading("cond", cond, (T,))
     wx = jnp.broadcast_to(w, x.shape[:2])[..., None]
 
     def step(k, x):
         xb = wx * y + (1.0 - wx) * x
-        return xb + model.apply_conditioned(obs, xb, _at(cond, k)) / T
+        return xb + field_output("model.apply_conditioned", model.apply_conditioned(obs, xb, _at(cond, k)), x) / T
 
     return _loop(step, x, T, unroll)

@@ -396,6 +396,7 @@ class TrainStep:
         self.delay_table = delay_probs(config.delay_dist, config.d_min, config.d_max, config.delay_decay)
         self._tables = _tables(config, H, self.weight_table, self.delay_table)
         self.optimizer, self.schedule = make_optimizer(config)
+        self._opt_spec = None  # shapes and dtypes of optimizer.init(params), computed on first use
         self.jitted = functools.partial(_update, self._spec, self._tables, self._rest)
 
     # ------------------------------------------------------------------ public API
@@ -426,10 +427,31 @@ class TrainStep:
                 jax.tree.leaves(got) != jax.tree.leaves(want):
             raise ValueError(f"{name} must have the parameter tree, shapes and dtypes of this train step's policy")
 
+    def _check_opt_state(self, opt_state: Any) -> None:
+        """``opt_state`` must have the tree, leaf shapes and dtypes of ``optimizer.init(params)`` ([T-10]).
+
+        The expected tree is ``jax.eval_shape`` of the initialisation (no arrays are built), computed once:
+        ``state.params`` is checked against the step's own parameter tree first, so it is the same for every
+        valid state.
+        """
+        if self._opt_spec is None:
+            shapes = jax.eval_shape(self.optimizer.init, self._params0)
+            self._opt_spec = (jax.tree.structure(shapes), [(a.shape, a.dtype) for a in jax.tree.leaves(shapes)])
+        treedef, leaves = self._opt_spec
+        try:
+            got = [(jnp.shape(a), jnp.result_type(a)) for a in jax.tree.leaves(opt_state)]
+        except TypeError:  # a leaf that is not an array
+            got = None
+        if got is None or jax.tree.structure(opt_state) != treedef or got != leaves:
+            raise ValueError("state.opt_state must be the optimiser state of this train step for its parameters "
+                             "(the tree, leaf shapes and dtypes of step.optimizer.init(params), as made by "
+                             f"init_state), got {type(opt_state).__name__}")
+
     def _check_state(self, state: Any) -> None:
         if not isinstance(state, TrainState):
             raise ValueError(f"state must be a TrainState (from init_state), got {type(state).__name__}")
         self._check_params("state.params", state.params)
+        self._check_opt_state(state.opt_state)
         step = state.step
         if not isinstance(step, jax.core.Tracer):
             s = np.asarray(step)

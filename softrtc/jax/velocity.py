@@ -14,6 +14,8 @@ time_conditioning(t)) == field(obs, x, t)`` up to float rounding.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import jax
 import jax.numpy as jnp
 
@@ -35,22 +37,37 @@ class ReferenceVelocityField:
     """v(obs, x, t) of [F-1] with a hand-written VJP ([F-2]), in float32."""
 
     def __init__(self, params: dict):
+        """Checks the parameters as the reference does ([F-1], [N-7]): exactly the six arrays of [F-1],
+        real, finite (when concrete), no empty axis, consistent shapes. Traced parameters (a field
+        built inside ``jit``) are checked for shape and dtype only."""
         if isinstance(params, _ref.ReferenceVelocityField):
             params = params.params
+        if not isinstance(params, Mapping):
+            raise ValueError(f"params must be a dict with keys {PARAM_NAMES}, got {type(params).__name__}")
         missing = [k for k in PARAM_NAMES if k not in params]
         if missing:
             raise ValueError(f"params is missing {missing}; expected keys {PARAM_NAMES}")
-        p = {k: jnp.asarray(params[k], jnp.float32) for k in PARAM_NAMES}
-        if p["W1"].ndim != 2 or p["Wt"].ndim != 2 or p["Wt"].shape[0] % 3:
-            raise ValueError("params['W1'] must be [H*A, K] and params['Wt'] [3*H, K]")
-        HA, K = p["W1"].shape
-        H = p["Wt"].shape[0] // 3
-        if H == 0 or HA % H or p["Wt"].shape[1] != K or p["Wo"].ndim != 2 or p["Wo"].shape[1] != K \
-                or p["b1"].shape != (K,) or p["W2"].shape != (K, HA) or p["b2"].shape != (HA,):
-            raise ValueError(f"params have inconsistent shapes: "
-                             f"{ {k: list(a.shape) for k, a in p.items()} }")
-        self.params = p
-        self.horizon, self.action_dim, self.obs_dim, self.hidden = H, HA // H, p["Wo"].shape[0], K
+        extra = [k for k in params if k not in PARAM_NAMES]
+        if extra:
+            raise ValueError(f"params has unknown keys {extra}; expected exactly the keys {PARAM_NAMES}")
+        W1 = v.array("params['W1']", params["W1"], ndim=2)
+        HA, K = W1.shape
+        Wt = v.array("params['Wt']", params["Wt"], ndim=2)
+        if Wt.shape[1] != K or Wt.shape[0] % 3:
+            raise ValueError(f"params['Wt'] must have shape [3*H, {K}], got {list(Wt.shape)}")
+        H = Wt.shape[0] // 3
+        if HA % H:
+            raise ValueError(f"params['W1'] must have shape [H*A, K] with H={H}, got {list(W1.shape)}")
+        Wo = v.array("params['Wo']", params["Wo"], ndim=2)
+        if Wo.shape[1] != K:
+            raise ValueError(f"params['Wo'] must have shape [obs_dim, {K}], got {list(Wo.shape)}")
+        self.params = {
+            "W1": W1, "Wt": Wt, "Wo": Wo,
+            "b1": v.array("params['b1']", params["b1"], shape=(K,)),
+            "W2": v.array("params['W2']", params["W2"], shape=(K, HA)),
+            "b2": v.array("params['b2']", params["b2"], shape=(HA,)),
+        }
+        self.horizon, self.action_dim, self.obs_dim, self.hidden = H, HA // H, Wo.shape[0], K
 
     @classmethod
     def from_reference(cls, field: _ref.ReferenceVelocityField) -> "ReferenceVelocityField":
@@ -97,10 +114,27 @@ class ReferenceVelocityField:
         pre = x.reshape(x.shape[:-2] + (-1,)) @ p["W1"] + cond + obs @ p["Wo"] + p["b1"]
         return jnp.tanh(pre)
 
+    def _check_cond(self, cond, x) -> jax.Array:
+        """``cond`` of :meth:`apply_conditioned`: real, [K] or [b, K] with b in {1, B} ([N-7]).
+
+        Shape and dtype are checked always, finiteness when concrete; any other
+        shape would broadcast into the hidden layer silently.
+        """
+        K = self.hidden
+        batch = x.shape[:-2]
+        if cond is None:
+            raise ValueError(f"cond must be an array [{K}] or [b, {K}] (time_conditioning of this field), got None")
+        c = v.array("cond", cond)
+        if not (c.shape == (K,) or (c.ndim == 2 and c.shape[1] == K and c.shape[0] in (1,) + batch)):
+            b = f"b in {{1, B={batch[0]}}}" if batch else "b = 1"
+            raise ValueError(f"cond must have shape [K={K}] or [b, {K}] with {b} (time_conditioning of this "
+                             f"field), got {list(c.shape)}")
+        return c
+
     def apply_conditioned(self, obs, x, cond) -> jax.Array:
         """Velocity from a precomputed ``cond = time_conditioning(t)``; cond [K] or [b, K], b in {1, B}."""
         obs, x = self._check(obs, x)
-        h = self._hidden(obs, x, jnp.asarray(cond, jnp.float32))
+        h = self._hidden(obs, x, self._check_cond(cond, x))
         return (h @ self.params["W2"] + self.params["b2"]).reshape(x.shape)
 
     def apply_conditioned_split(self, obs, x, cond, head: int) -> tuple:
@@ -112,7 +146,7 @@ class ReferenceVelocityField:
         """
         head = v.check_int("head", head, 1, self.horizon - 1)
         obs, x = self._check(obs, x)
-        h = self._hidden(obs, x, jnp.asarray(cond, jnp.float32))
+        h = self._hidden(obs, x, self._check_cond(cond, x))
         W2, b2, n = self.params["W2"], self.params["b2"], head * self.action_dim
         lead = x.shape[:-2]
         return ((h @ W2[:, :n] + b2[:n]).reshape(lead + (head, self.action_dim)),

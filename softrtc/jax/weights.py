@@ -26,7 +26,7 @@ from softrtc.reference import weights as _ref
 
 from . import _validate as v
 from . import endpoints as _ep
-from .endpoints import EndpointRule, delay_scaled, endpoint
+from .endpoints import EndpointRule, delay_scaled
 
 SCHEDULES = _ref.SCHEDULES
 PARAMETRIZATIONS = _ref.PARAMETRIZATIONS
@@ -123,16 +123,17 @@ def effective_endpoint(H: int, d, e, s=None, overflow: str = "clip") -> jax.Arra
 
     [W-2] e* = max(e, d): the committed prefix is always clamped.
     [W-6] overflow="clip" also caps at the overlap: e* = max(d, min(e*, H - s)).
-    ``d``, ``e`` in [0, H] and ``s`` in [1, H] may be traced (checked when concrete).
+    ``d``, ``e`` in [0, H] and ``s`` in [1, H] may be traced (checked when concrete); a given
+    ``s`` is checked under either overflow, as in the reference.
     """
     H = v.check_horizon(H)
     v.check_choice("overflow", overflow, OVERFLOWS)
     d = v.int_value("d", d, 0, H)
     e = v.int_value("e", e, 0, H)
-    if overflow == "clip":
-        if s is None:
-            raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
-        s = v.int_value("s", s, 1, H)
+    if s is not None:
+        s = v.int_value("s", s, 1, H)  # checked when given, even where overflow="zeros" leaves it unused
+    if overflow == "clip" and s is None:
+        raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
     return _effective(H, d, e, s, OVERFLOWS.index(overflow))
 
 

@@ -34,6 +34,9 @@ class ReferenceVelocityField:
         missing = [k for k in PARAM_NAMES if k not in params]
         if missing:
             raise ValueError(f"params is missing {missing}; expected keys {PARAM_NAMES}")
+        extra = sorted(str(k) for k in params if k not in PARAM_NAMES)
+        if extra:  # a misspelt or foreign weight would otherwise be ignored
+            raise ValueError(f"params has unknown keys {extra}; expected keys {PARAM_NAMES}")
         W1 = check_array("params['W1']", params["W1"], ndim=2)
         HA, K = W1.shape
         Wt = check_array("params['Wt']", params["Wt"], ndim=2)
