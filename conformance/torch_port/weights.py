@@ -56,7 +56,7 @@ def _schedule(name: str, x: torch.Tensor) -> torch.Tensor:
 
 def prefix_weights(H: int, d: int, e: int, schedule: str = "linear", parametrization: str = "rtc") -> torch.Tensor:
     """1 on [0, d), g(x_j) on [d, e), 0 on [e, H) ([W-1], [W-4], [W-5])."""
-    H = integer("H", H, 1, None)
+    H = integer("H", H, 1, MAX_WINDOW)
     d = integer("d", d, 0, H)
     e = integer("e", e, d, H)
     choice("schedule", schedule, SCHEDULES)
@@ -73,7 +73,7 @@ def prefix_weights(H: int, d: int, e: int, schedule: str = "linear", parametriza
 
 def soft_weights(H: int, d: int, window: dict, s=None) -> torch.Tensor:
     """Soft RTC weights ([W-2], [W-6], [W-7])."""
-    H = integer("H", H, 1, None)
+    H = integer("H", H, 1, MAX_WINDOW)
     d = integer("d", d, 0, H)
     if not isinstance(window, dict) or "rule" not in window:
         raise ValueError("window must be a dict with keys rule, schedule, parametrization, overflow")
@@ -98,14 +98,14 @@ def soft_weights(H: int, d: int, window: dict, s=None) -> torch.Tensor:
 
 def hard_weights(H: int, d: int) -> torch.Tensor:
     """1[j < d] ([W-8])."""
-    H = integer("H", H, 1, None)
+    H = integer("H", H, 1, MAX_WINDOW)
     d = integer("d", d, 0, H)
     return (torch.arange(H) < d).to(DTYPE)
 
 
 def guidance_weights(H: int, s: int, d: int, variant: str) -> torch.Tensor:
     """Inference-time RTC weights: start d, end H - s, zeros (hard) or exp (soft) ([G-1])."""
-    H = integer("H", H, 1, None)
+    H = integer("H", H, 1, MAX_WINDOW)
     s = integer("s", s, 1, H)
     d = integer("d", d, 0, H - s)
     sched = {"hard": "zeros", "soft": "exp"}[choice("variant", variant, ("hard", "soft"))]

@@ -197,6 +197,10 @@ def gen_weights() -> _Cases:
             {"H": 8, "d": 3, "e": 2, "schedule": "linear", "parametrization": "rtc"})
     c.error("W.prefix_weights.reject.e-above-H", "prefix_weights", ["W-1", "N-7"],
             {"H": 8, "d": 3, "e": 9, "schedule": "linear", "parametrization": "rtc"})
+    # [N-12] The chunk length is bounded: 4096 is the largest H, so every token index and delay is <= 4096.
+    c.error("W.hard_weights.reject.H-above-range", "hard_weights", ["W-8", "N-12", "N-7"], {"H": 4097, "d": 0})
+    c.error("W.prefix_weights.reject.H-above-range", "prefix_weights", ["W-1", "N-12", "N-7"],
+            {"H": 4097, "d": 0, "e": 0, "schedule": "linear", "parametrization": "rtc"})
     zeros = dict(default, overflow="zeros")
     c.error("W.weights.reject.s-above-H-under-zeros", "weights", ["W-6", "N-7"],
             {"H": 8, "d": 2, "window": zeros, "s": 9})
