@@ -8,22 +8,25 @@ the drift that its own errors cause.
 
 from __future__ import annotations
 
-import math
 import os
 
 import numpy as np
 
-from .env import ACTION_DIM, NUM_JOINTS, NUM_OBJECTS, OBS_DIM, ArmConfig, ArmSortEnv, _check_int
+from .env import (ACTION_DIM, NUM_JOINTS, NUM_OBJECTS, OBS_DIM, ArmConfig, ArmSortEnv, _check_env_config,
+                  _check_int, _is_real)
 from .expert import ExpertConfig, ScriptedExpert
 
 __all__ = ["generate_demos", "rollout_noisy_episode", "load_demos"]
 
+# Largest seed a demo file can store (saved as int64, [A-16]).
+SEED_MAX = 2**63 - 1
+
 
 def _check_float(name: str, value, low: float, high: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a number in [{low}, {high}], got {value!r}")
+    if not _is_real(value):  # booleans, NaN/inf and integers too large for a float ([N-7])
+        raise ValueError(f"{name} must be a finite number in [{low}, {high}], got {value!r}")
     v = float(value)
-    if not math.isfinite(v) or v < low or v > high:
+    if v < low or v > high:
         raise ValueError(f"{name} must be a finite number in [{low}, {high}], got {value!r}")
     return v
 
@@ -50,6 +53,7 @@ def rollout_noisy_episode(env: ArmSortEnv, expert: ScriptedExpert, env_seed, rng
     perturb_prob = _check_float("perturb_prob", perturb_prob, 0.0, 1.0)
     perturb_std = _check_float("perturb_std", perturb_std, 0.0, 2.0)
     perturb_steps = _check_int("perturb_steps", perturb_steps, 1, 10_000)
+    env_seed = _check_int("env_seed", env_seed, 0, SEED_MAX)
     obs = env.reset(env_seed)
     obs_l, lab_l, exe_l = [], [], []
     offset = np.zeros(NUM_JOINTS)
@@ -93,13 +97,24 @@ def generate_demos(num_episodes, seed, noise_std, path, perturb_prob=0.005, pert
     must exist. Returns a summary dict (episodes, steps, success rate).
     """
     num_episodes = _check_int("num_episodes", num_episodes, 1, None)
-    seed = _check_int("seed", seed, 0, None)
+    seed = _check_int("seed", seed, 0, SEED_MAX)
     noise_std = _check_float("noise_std", noise_std, 0.0, 1.0)
-    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path).endswith(".npz"):
+    perturb_prob = _check_float("perturb_prob", perturb_prob, 0.0, 1.0)
+    perturb_std = _check_float("perturb_std", perturb_std, 0.0, 2.0)
+    perturb_steps = _check_int("perturb_steps", perturb_steps, 1, 10_000)
+    if not isinstance(path, (str, os.PathLike)) or not isinstance(os.fspath(path), str) \
+            or not os.fspath(path).endswith(".npz"):
         raise ValueError(f"path must be a str or PathLike ending in '.npz', got {path!r}")
     parent = os.path.dirname(os.path.abspath(os.fspath(path)))
     if not os.path.isdir(parent):
         raise ValueError(f"path's folder {parent!r} does not exist")
+    if os.path.isdir(path):
+        raise ValueError(f"path {os.fspath(path)!r} is a folder, expected a .npz file name")
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"path's folder {parent!r} is not writable")
+    env_config = _check_env_config(env_config, "env_config")
+    if expert_config is not None and not isinstance(expert_config, ExpertConfig):
+        raise ValueError(f"expert_config must be an ExpertConfig or None, got {type(expert_config).__name__}")
     env = ArmSortEnv(env_config)
     expert = ScriptedExpert(env.config, expert_config)
     children = np.random.SeedSequence(seed).spawn(num_episodes)

@@ -119,11 +119,46 @@ def _check_int(name: str, value, low: int, high: int | None = None) -> int:
     return int(value)
 
 
+def _is_real(x) -> bool:
+    """A finite real scalar (Python or NumPy; no booleans); huge integers that overflow a float are not."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+        return False
+    try:
+        return math.isfinite(x)
+    except (OverflowError, TypeError, ValueError):
+        return False
+
+
+def _real_array(name: str, value, shape_desc: str) -> np.ndarray:
+    """``value`` as a float64 array: integer/float dtype only ([N-7]); ragged, boolean, string and complex
+    inputs raise ValueError naming ``name`` (no conversion). Shape and finiteness are the caller's checks."""
+    try:
+        raw = np.asarray(value)
+    except (ValueError, TypeError, OverflowError):
+        raise ValueError(f"{name} must be a finite real array of shape {shape_desc}, got a ragged or "
+                         f"non-numeric value") from None
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be a finite real array of shape {shape_desc}, got dtype {raw.dtype}")
+    try:
+        return raw.astype(np.float64)
+    except (ValueError, TypeError, OverflowError):
+        raise ValueError(f"{name} must be a finite real array of shape {shape_desc}") from None
+
+
+def _check_env_config(env_config, name: str = "env_config") -> "ArmConfig":
+    """``env_config`` checked (an :class:`ArmConfig`), or the default for None; errors name ``name``."""
+    if env_config is None:
+        return ArmConfig()
+    if not isinstance(env_config, ArmConfig):
+        raise ValueError(f"{name} must be an ArmConfig or None, got {type(env_config).__name__}")
+    _validate_config(env_config)
+    return env_config
+
+
 def _reals(name: str, values, n: int, low: float | None = None, strict: bool = False) -> tuple:
     """``n`` finite real numbers (no booleans), each > low (strict) or >= low."""
     ok = isinstance(values, (tuple, list)) and len(values) == n and all(
-        isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
-        and math.isfinite(x) and (low is None or (x > low if strict else x >= low)) for x in values)
+        _is_real(x) and (low is None or (x > low if strict else x >= low)) for x in values)
     if not ok:
         bound = "" if low is None else f" {'>' if strict else '>='} {low}"
         raise ValueError(f"config.{name} must be {n} finite numbers{bound}, got {values!r}")
@@ -223,9 +258,7 @@ def forward_kinematics(q, config: ArmConfig | None = None) -> np.ndarray:
     previous link's world angle.
     """
     cfg = _config(config)
-    if np.asarray(q).dtype.kind not in "iuf":
-        raise ValueError(f"q must be a finite real array of shape ({NUM_JOINTS},), got dtype {np.asarray(q).dtype}")
-    q = np.asarray(q, dtype=np.float64)
+    q = _real_array("q", q, f"({NUM_JOINTS},)")
     if q.shape != (NUM_JOINTS,) or not np.all(np.isfinite(q)):
         raise ValueError(f"q must be a finite array of shape ({NUM_JOINTS},), got {q!r}")
     theta = -math.pi / 2 + np.cumsum(q)
@@ -245,13 +278,10 @@ def inverse_kinematics(ee_xy, config: ArmConfig | None = None, tool_angle: float
     ValueError.
     """
     cfg = _config(config)
-    if np.asarray(ee_xy).dtype.kind not in "iuf":  # booleans and strings are not coordinates
-        raise ValueError(f"ee_xy must be a finite real array of shape (2,), got dtype {np.asarray(ee_xy).dtype}")
-    p = np.asarray(ee_xy, dtype=np.float64)
+    p = _real_array("ee_xy", ee_xy, "(2,)")  # booleans, strings and ragged lists are not coordinates
     if p.shape != (2,) or not np.all(np.isfinite(p)):
         raise ValueError(f"ee_xy must be a finite array of shape (2,), got {ee_xy!r}")
-    if isinstance(tool_angle, (bool, np.bool_)) or not isinstance(tool_angle, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(tool_angle):
+    if not _is_real(tool_angle):
         raise ValueError(f"tool_angle must be a finite real number (radians), got {tool_angle!r}")
     return _ik(p, cfg, float(tool_angle))
 
@@ -466,12 +496,7 @@ class ArmSortEnv:
 
     def validate_action(self, action) -> np.ndarray:
         """Return ``action`` as float64 or raise ValueError ([A-8])."""
-        if np.asarray(action).dtype.kind not in "iuf":  # booleans and strings are not actions
-            raise ValueError(f"action must be {ACTION_DIM} real numbers, got dtype {np.asarray(action).dtype}")
-        try:
-            a = np.array(action, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"action must be {ACTION_DIM} numbers, got {action!r}") from None
+        a = _real_array("action", action, f"({ACTION_DIM},)")  # booleans, strings, ragged lists are not actions
         if a.shape != (ACTION_DIM,):
             raise ValueError(f"action must have shape ({ACTION_DIM},), got {a.shape}")
         if not np.all(np.isfinite(a)):

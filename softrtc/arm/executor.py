@@ -21,7 +21,7 @@ import numpy as np
 from softrtc.jax import executor as jexec
 from softrtc.reference import metrics as rmetrics
 
-from .env import ACTION_DIM, ArmConfig, ArmSortEnv, NUM_OBJECTS
+from .env import ACTION_DIM, ArmConfig, ArmSortEnv, NUM_OBJECTS, _check_env_config
 
 __all__ = ["EpisodeRecord", "run_simulated_episode", "episode_metrics", "JOINT_DIMS"]
 
@@ -114,7 +114,9 @@ def run_simulated_episode(policy, env_seed: int, delays, key, *, max_steps: int 
     env_seed = _check_int("env_seed", env_seed, 0)
     if not isinstance(key, jax.Array) or not jax.numpy.issubdtype(key.dtype, jax.dtypes.prng_key):
         raise ValueError("key must be a typed JAX PRNG key (jax.random.key(seed))")
-    env = ArmSortEnv(env_config)
+    if key.shape != ():
+        raise ValueError(f"key must be a single typed JAX PRNG key of shape (), got shape {tuple(key.shape)}")
+    env = ArmSortEnv(_check_env_config(env_config, "env_config"))
     limit = env.config.max_steps if max_steps is None else _check_int("max_steps", max_steps, 1, env.config.max_steps)
     dfn = _delay_fn(delays, min(s, H - s))
 
@@ -177,7 +179,26 @@ def episode_metrics(record: EpisodeRecord) -> dict:
     """
     if not isinstance(record, EpisodeRecord):
         raise ValueError(f"record must be an EpisodeRecord, got {type(record).__name__}")
-    _check_int("record.step_limit", record.step_limit, max(record.steps, 1))
+    steps = _check_int("record.steps", record.steps, 0)
+    _check_int("record.step_limit", record.step_limit, max(steps, 1))
+    _check_int("record.num_completed", record.num_completed, 0, NUM_OBJECTS)
+    dt = record.dt
+    if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(float(dt) if abs(dt) < 1e308 else np.inf) or dt <= 0:
+        raise ValueError(f"record.dt must be a finite number > 0 (seconds), got {dt!r}")
+    if not isinstance(record.success, (bool, np.bool_)):
+        raise ValueError(f"record.success must be a boolean, got {record.success!r}")
+    if record.success:
+        _check_int("record.success_step (required when record.success)", record.success_step, 1, record.step_limit)
+    acts = record.actions
+    if not isinstance(acts, np.ndarray) or acts.dtype.kind not in "iuf" or acts.ndim != 2 \
+            or acts.shape[1] != ACTION_DIM or acts.shape[0] != steps:
+        raise ValueError(f"record.actions must be a real array of shape (record.steps, {ACTION_DIM}) = "
+                         f"({steps}, {ACTION_DIM}), got {getattr(acts, 'shape', type(acts).__name__)}")
+    if not isinstance(record.chunk_index, np.ndarray) or record.chunk_index.shape != (steps,):
+        raise ValueError(f"record.chunk_index must be an integer array of shape ({steps},)")
+    if not isinstance(record.latencies_s, np.ndarray) or record.latencies_s.dtype.kind not in "iuf":
+        raise ValueError("record.latencies_s must be a real array")
     a = record.actions[:, JOINT_DIMS]
     out = {"success": bool(record.success), "completed": int(record.num_completed),
            "completion": record.num_completed / NUM_OBJECTS}

@@ -22,9 +22,11 @@ from .env import (
     OBS_DIM,
     OBS_SLICES,
     ArmConfig,
-    _validate_config,
     ArmSortEnv,
+    _check_env_config,
     _check_int,
+    _is_real,
+    _real_array,
     inverse_kinematics,
 )
 
@@ -45,9 +47,10 @@ class ExpertConfig:
     def __post_init__(self):
         for name in ("carry_height", "lookahead", "align_tol", "lift_tol", "grasp_clearance", "drop_clearance"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or value <= 0:
+            # NumPy scalars are accepted like Python numbers (stored as float); booleans and huge integers are not.
+            if not _is_real(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0 (metres), got {value!r}")
+            object.__setattr__(self, name, float(value))
 
 
 class ScriptedExpert:
@@ -59,27 +62,25 @@ class ScriptedExpert:
     """
 
     def __init__(self, env_config: ArmConfig | None = None, config: ExpertConfig | None = None):
-        self.env_config = ArmConfig() if env_config is None else env_config
+        self.env_config = _check_env_config(env_config, "env_config")
         self.config = ExpertConfig() if config is None else config
-        if not isinstance(self.env_config, ArmConfig):
-            raise ValueError("env_config must be an ArmConfig")
-        _validate_config(self.env_config)
         if not isinstance(self.config, ExpertConfig):
             raise ValueError("config must be an ExpertConfig")
         self._low = np.array(self.env_config.joint_low)
         self._high = np.array(self.env_config.joint_high)
 
     def slot_x(self, obj: int, box_x: float) -> float:
-        """Release x of object ``obj`` in its box with centre ``box_x``."""
+        """Release x of object ``obj`` (an integer in [0, 3]) in its box with centre ``box_x`` (finite)."""
+        obj = _check_int("obj", obj, 0, NUM_OBJECTS - 1)
+        if not _is_real(box_x):
+            raise ValueError(f"box_x must be a finite real number (metres), got {box_x!r}")
         inner = self.env_config.box_inner_widths[OBJECT_TARGET_BOX[obj]]
         # Object 0/2 go to the left half, 1/3 to the right half.
         return box_x + (-1.0 if obj % 2 == 0 else 1.0) * inner / 4
 
     def act(self, obs) -> np.ndarray:
         """Expert action for observation ``obs`` (shape (34,)) ([A-13])."""
-        if np.asarray(obs).dtype.kind not in "iuf":  # booleans and strings are not observations ([A-12])
-            raise ValueError(f"obs must be a finite real array of shape ({OBS_DIM},), got dtype {np.asarray(obs).dtype}")
-        o = np.asarray(obs, dtype=np.float64)
+        o = _real_array("obs", obs, f"({OBS_DIM},)")  # booleans, strings, ragged lists are not observations
         if o.shape != (OBS_DIM,) or not np.all(np.isfinite(o)):
             raise ValueError(f"obs must be a finite array of shape ({OBS_DIM},)")
         cfg, ec = self.config, self.env_config
@@ -149,6 +150,9 @@ def run_expert_episode(seed, env_config: ArmConfig | None = None,
     Returns ``success``, ``completed``, ``steps`` and ``success_step``.
     """
     seed = _check_int("seed", seed, 0, None)
+    env_config = _check_env_config(env_config, "env_config")
+    if expert_config is not None and not isinstance(expert_config, ExpertConfig):
+        raise ValueError(f"expert_config must be an ExpertConfig or None, got {type(expert_config).__name__}")
     env = ArmSortEnv(env_config)
     expert = ScriptedExpert(env.config, expert_config)
     obs = env.reset(seed)

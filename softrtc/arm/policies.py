@@ -36,7 +36,8 @@ from softrtc.jax import weights as jweights
 from softrtc.jax.weights import SoftWindow
 from softrtc.reference.weights import SoftWindow as RefSoftWindow
 
-from .env import ACTION_DIM, NUM_OBJECTS, OBJECT_TARGET_BOX, OBS_DIM, OBS_SLICES, ArmConfig, _validate_config
+from .env import (ACTION_DIM, NUM_OBJECTS, OBJECT_TARGET_BOX, OBS_DIM, OBS_SLICES, ArmConfig, _is_real,
+                  _validate_config)
 
 __all__ = [
     "ArmPolicyConfig", "Normalizer", "ArmPolicy", "TRAIN_METHODS", "STUDY_METHODS", "METHOD_LABELS",
@@ -75,10 +76,10 @@ def _check_int(name, value, lo, hi=None) -> int:
 
 
 def _check_float(name, value, lo, hi, lo_open=False) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+    if not _is_real(value):  # booleans, NaN/inf and integers too large for a float ([N-7])
         raise ValueError(f"{name} must be a finite number in {'(' if lo_open else '['}{lo}, {hi}], got {value!r}")
     v = float(value)
-    if not math.isfinite(v) or v < lo or v > hi or (lo_open and v == lo):
+    if v < lo or v > hi or (lo_open and v == lo):
         raise ValueError(f"{name} must be a finite number in {'(' if lo_open else '['}{lo}, {hi}], got {value!r}")
     return v
 
@@ -106,8 +107,8 @@ def policy_features(obs) -> np.ndarray:
     part's ``(x, y)`` and its box's ``(centre x, floor y)`` minus the gripper
     tip (zeros once every part is placed).
     """
-    o = np.asarray(obs, np.float64)
-    if o.ndim < 1 or o.shape[-1] != OBS_DIM or not np.all(np.isfinite(o)):
+    o = _real_array("obs", obs)
+    if o.ndim < 1 or o.shape[-1] != OBS_DIM or o.size == 0 or not np.all(np.isfinite(o)):
         raise ValueError(f"obs must be a finite array of shape [..., {OBS_DIM}], got shape {list(o.shape)}")
     todo = o[..., _PLACED] < 0.5
     left = todo.any(-1, keepdims=True)
@@ -165,17 +166,20 @@ def _new_model(config: ArmPolicyConfig, seed: int) -> FlowPolicy:
 
 def _real_array(name, value) -> np.ndarray:
     """``value`` as float64, rejecting booleans, strings and other non-real dtypes ([N-7])."""
-    kind = np.asarray(value).dtype.kind
-    if kind not in "iuf":
-        raise ValueError(f"{name} must be a real numeric array, got dtype {np.asarray(value).dtype}")
-    return np.asarray(value, np.float64)
+    try:
+        raw = np.asarray(value)
+    except (ValueError, TypeError, OverflowError):
+        raise ValueError(f"{name} must be a real numeric array, got a ragged or non-numeric value") from None
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be a real numeric array, got dtype {raw.dtype}")
+    return raw.astype(np.float64)
 
 
 def _rows(name, value, dim) -> np.ndarray:
     """A finite array whose last axis has ``dim`` entries."""
     a = _real_array(name, value)
-    if a.ndim < 1 or a.shape[-1] != dim or not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} must be finite with last axis {dim}, got shape {list(a.shape)}")
+    if a.ndim < 1 or a.shape[-1] != dim or a.size == 0 or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite with last axis {dim} and no empty axis, got shape {list(a.shape)}")
     return a
 
 
@@ -228,7 +232,7 @@ class Normalizer:
         """Inverse of :meth:`to_dict` (validated)."""
         if not isinstance(data, dict) or set(data) != {"obs_mean", "obs_std", "act_mean", "act_std"}:
             raise ValueError("data must be a dict with obs_mean, obs_std, act_mean, act_std (Normalizer.to_dict)")
-        return Normalizer(**{k: np.asarray(v, np.float64) for k, v in data.items()})
+        return Normalizer(**{k: _real_array(f"data[{k!r}]", v) for k, v in data.items()})
 
     def obs(self, features):
         return (_rows("features", features, FEATURE_DIM) - self.obs_mean) / self.obs_std
@@ -324,9 +328,10 @@ def train_flow_policy(dataset: dict, normalizer: Normalizer, method: str, steps:
     if not isinstance(dataset, dict) or "obs" not in dataset or "chunks" not in dataset:
         raise ValueError(f"dataset must be a dict with 'obs' [N, {OBS_DIM}] and 'chunks' [N, H, 4] (chunk_dataset)")
     H = config.horizon
-    chunks = np.asarray(dataset["chunks"])
-    if chunks.ndim != 3 or chunks.shape[1:] != (H, ACTION_DIM):
-        raise ValueError(f"dataset chunks must have shape [N, {H}, {ACTION_DIM}], got {list(chunks.shape)}")
+    chunks = _real_array("dataset['chunks']", dataset["chunks"])
+    if chunks.ndim != 3 or chunks.shape[1:] != (H, ACTION_DIM) or chunks.shape[0] < 1 \
+            or not np.all(np.isfinite(chunks)):
+        raise ValueError(f"dataset['chunks'] must be finite with shape [N >= 1, {H}, {ACTION_DIM}], got {list(chunks.shape)}")
     obs = normalizer.obs(policy_features(dataset["obs"]))
     if obs.shape[0] != chunks.shape[0]:
         raise ValueError(f"dataset obs and chunks must have the same length, got {obs.shape[0]} and {chunks.shape[0]}")
@@ -468,6 +473,10 @@ class ArmPolicy:
             raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
         self.method = _check_choice("method", method, jmethods.METHODS)
         _check_window(window)
+        if trained_as is not None and not isinstance(trained_as, str):
+            raise ValueError(f"trained_as must be a str or None, got {trained_as!r}")
+        if meta is not None and not isinstance(meta, dict):
+            raise ValueError(f"meta must be a dict or None, got {type(meta).__name__}")
         self.trained_as = trained_as or method
         self.meta = dict(meta or {})
         if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
@@ -484,7 +493,7 @@ class ArmPolicy:
                                                               normalizer.act_mean, normalizer.act_std))
 
     def _obs(self, obs) -> jnp.ndarray:
-        o = np.asarray(obs, np.float64)
+        o = _real_array("obs", obs)
         if o.shape != (OBS_DIM,) or not np.all(np.isfinite(o)):
             raise ValueError(f"obs must be a finite vector of shape [{OBS_DIM}], got shape {list(o.shape)}")
         return jnp.asarray(policy_features(o), jnp.float32)
@@ -494,12 +503,14 @@ class ArmPolicy:
         o = self._obs(obs)
         if not isinstance(key, jax.Array) or not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
             raise ValueError("key must be a typed JAX PRNG key (jax.random.key(seed))")
+        if key.shape != ():
+            raise ValueError(f"key must be a single typed JAX PRNG key of shape (), got shape {tuple(key.shape)}")
         if prior is None:
             _check_int("d", d, 0, 0)
             z = _first_chunk(self._static, self._state, self._nm, o, key)
         else:
             d = _check_int("d", d, 0, self.config.max_delay)
-            p = np.asarray(prior, np.float64)
+            p = _real_array("prior", prior)
             if p.shape != (self.H, ACTION_DIM) or not np.all(np.isfinite(p)):
                 raise ValueError(f"prior must be a finite array of shape [{self.H}, {ACTION_DIM}], got {list(p.shape)}")
             z = _later_chunk(self._static, self.method, self._state, self.window, self._nm, o, jnp.asarray(p, jnp.float32),
@@ -549,13 +560,39 @@ def load_policies(checkpoint_dir=None, methods=STUDY_METHODS) -> dict:
     folder = Path(default_checkpoint_dir() if checkpoint_dir is None else checkpoint_dir)
     if not folder.is_dir():
         raise ValueError(f"checkpoint_dir must be an existing folder, got {str(folder)!r}")
-    out = {}
+    methods = list(methods)
+    if not methods:
+        raise ValueError("methods must be a non-empty sequence of method names")
     for m in methods:
         _check_choice("methods entry", m, jmethods.METHODS)
+    out = {}
+    for m in methods:
         f = folder / _CKPT_FILES.get(m, "base.npz")
         if not f.is_file():
             raise ValueError(f"checkpoint {str(f)!r} is missing; run `softrtc arm train --out {folder}`")
         out[m] = load_arm_checkpoint(f, sampler_method=m)
+    return out
+
+
+# Arrays of a generate_demos file that training reads ([A-16]).
+_DEMO_KEYS = ("obs", "action", "episode_start", "episode_length", "seed", "noise_std")
+
+
+def _check_out_dir(out_dir) -> Path:
+    """An output folder that exists or can be created: not a file, under a writable folder ([A-12])."""
+    if not isinstance(out_dir, (str, os.PathLike)) or not isinstance(os.fspath(out_dir), str) \
+            or not os.fspath(out_dir):
+        raise ValueError(f"out_dir must be a non-empty str or PathLike, got {out_dir!r}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir {str(out)!r} exists and is not a folder")
+    probe = out.absolute()
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ValueError(f"out_dir {str(out)!r} cannot be created: {str(probe)!r} is not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"out_dir {str(out)!r} is not writable ({str(probe)!r})")
     return out
 
 
@@ -589,7 +626,27 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
     learning_rate = _check_float("learning_rate", learning_rate, 0.0, 1.0, lo_open=True)
     if not isinstance(config, ArmPolicyConfig):
         raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
-    out = Path(out_dir)
+    out = _check_out_dir(out_dir)
+    data = None
+    if demos is not None:
+        # Checked before out_dir is created or any training starts ([A-12]).
+        if not isinstance(demos, (str, os.PathLike)) or not os.path.isfile(demos):
+            raise ValueError(f"demos must name an existing demo .npz file or be None, got {demos!r}")
+        try:
+            data = load_demos(os.fspath(demos))
+        except ValueError as exc:
+            raise ValueError(f"demos: {exc}") from None
+        missing = [k for k in _DEMO_KEYS if k not in data]
+        if missing:
+            raise ValueError(f"demos file {os.fspath(demos)!r} is not a generate_demos file: missing {missing}")
+        try:
+            got = (len(data["episode_start"]), int(data["seed"]), float(data["noise_std"]))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"demos file {os.fspath(demos)!r} has malformed seed/noise_std/episode_start ({exc})") \
+                from None
+        if got[0] != episodes or got[1] != seed or not math.isclose(got[2], noise_std, rel_tol=1e-6):
+            raise ValueError(f"demos file {os.fspath(demos)!r} holds (episodes, seed, noise_std) = {got}, "
+                             f"expected {(episodes, seed, noise_std)}")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     if demos is None:
@@ -602,14 +659,6 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
         if verbose:
             print(f"demos: {info['episodes']} episodes, {info['steps']} steps, expert success "
                   f"{info['success_rate']:.2f} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    else:
-        if not isinstance(demos, (str, os.PathLike)) or not os.path.isfile(demos):
-            raise ValueError(f"demos must name an existing demo .npz file or be None, got {demos!r}")
-        data = load_demos(os.fspath(demos))
-        got = (len(data["episode_start"]), int(data["seed"]), float(data["noise_std"]))
-        if got[0] != episodes or got[1] != seed or not math.isclose(got[2], noise_std, rel_tol=1e-6):
-            raise ValueError(f"demos file {os.fspath(demos)!r} holds (episodes, seed, noise_std) = {got}, "
-                             f"expected {(episodes, seed, noise_std)}")
     ds = chunk_dataset(data, config.horizon)
     norm = Normalizer.fit(policy_features(data["obs"]), data["action"])
     meta = {"episodes": episodes, "seed": seed, "noise_std": noise_std, "steps": steps,

@@ -26,7 +26,7 @@ import numpy as np
 
 from softrtc.jax import executor as jexec
 
-from .env import ACTION_DIM, ArmConfig, ArmSortEnv
+from .env import ACTION_DIM, ArmConfig, ArmSortEnv, _check_env_config
 from .executor import EpisodeRecord
 
 __all__ = ["RuntimeConfig", "run_realtime_episode", "predict_delay", "jitter_summary"]
@@ -38,10 +38,20 @@ MAX_ADDED_LATENCY_S = 10.0
 
 def _seconds(name: str, v, lo: float, hi: float) -> float:
     """A finite real number of seconds in ``[lo, hi]`` (NumPy scalars included, booleans and strings not)."""
-    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)) \
-            or not math.isfinite(v) or not lo <= v <= hi:
+    try:
+        ok = not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, float, np.integer, np.floating)) \
+            and math.isfinite(v) and lo <= v <= hi
+    except (OverflowError, TypeError, ValueError):
+        ok = False
+    if not ok:
         raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {v!r}")
     return float(v)
+
+
+def _chunk_ok(chunk, H: int) -> bool:
+    """A policy chunk the runtime may execute: shape (H, ACTION_DIM), real dtype, finite ([R-7])."""
+    return (isinstance(chunk, np.ndarray) and chunk.shape == (H, ACTION_DIM) and chunk.dtype.kind in "iuf"
+            and bool(np.all(np.isfinite(chunk))))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,9 +100,14 @@ def predict_delay(recent_delays, max_delay: int) -> int:
 
 def jitter_summary(periods_s) -> dict:
     """p50, p99 and max of control-loop periods in ms, and the share of periods over 1.5 dt is left to callers."""
-    if np.asarray(periods_s).dtype.kind not in "iuf":
-        raise ValueError(f"periods_s must be real numbers, got dtype {np.asarray(periods_s).dtype}")
-    p = np.asarray(periods_s, np.float64)
+    try:
+        raw = np.asarray(periods_s)
+    except (ValueError, TypeError):
+        raise ValueError("periods_s must be a non-empty 1-D array of finite periods >= 0 (seconds), "
+                         "got a ragged or non-numeric sequence") from None
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"periods_s must be real numbers, got dtype {raw.dtype}")
+    p = raw.astype(np.float64)
     if p.ndim != 1 or p.size < 1 or not np.all(np.isfinite(p)) or np.any(p < 0):
         raise ValueError("periods_s must be a non-empty 1-D array of finite periods >= 0 (seconds)")
     return {"p50_ms": float(np.percentile(p, 50) * 1e3), "p99_ms": float(np.percentile(p, 99) * 1e3),
@@ -162,17 +177,21 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
     """
     H = getattr(policy, "H", None)
     s = getattr(policy, "s", None)
-    if not (isinstance(H, int) and isinstance(s, int) and 1 <= s < H) or not callable(getattr(policy, "generate", None)):
+    is_int = lambda v: isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))  # noqa: E731
+    if not (is_int(H) and is_int(s) and 1 <= s < H) or not callable(getattr(policy, "generate", None)):
         raise ValueError("policy must provide integers H, s (1 <= s < H) and generate(obs, prior, d, key)")
+    H, s = int(H), int(s)
     if isinstance(env_seed, bool) or not isinstance(env_seed, (int, np.integer)) or env_seed < 0:
         raise ValueError(f"env_seed must be an integer >= 0, got {env_seed!r}")
     if not isinstance(key, jax.Array) or not jax.numpy.issubdtype(key.dtype, jax.dtypes.prng_key):
         raise ValueError("key must be a typed JAX PRNG key (jax.random.key(seed))")
+    if key.shape != ():
+        raise ValueError(f"key must be a single typed JAX PRNG key of shape (), got shape {tuple(key.shape)}")
     if not isinstance(config, RuntimeConfig):
         raise ValueError(f"config must be a RuntimeConfig, got {type(config).__name__}")
     if added_latency is not None and not callable(added_latency):
         raise ValueError("added_latency must be None or a callable c -> seconds")
-    env = ArmSortEnv(env_config)
+    env = ArmSortEnv(_check_env_config(env_config, "env_config"))
     limit = env.config.max_steps if max_steps is None else max_steps
     if isinstance(limit, bool) or not isinstance(limit, (int, np.integer)) or not 1 <= limit <= env.config.max_steps:
         raise ValueError(f"max_steps must be an integer in [1, {env.config.max_steps}], got {max_steps!r}")
@@ -227,6 +246,11 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
             raise _End
         _, _, chunk0, t_done, _ = msg
         lat[0] = t_done - t_req_of[0]
+        if not _chunk_ok(chunk0, H):
+            # [R-7] a chunk the runtime cannot execute is a model fault: recorded, never raised.
+            fault = f"worker_error: chunk 0 has shape {list(np.shape(chunk0))} or non-finite values"
+            events.append((0, "bad_chunk", 0))
+            raise _End
         chunks[0] = chunk0
         d_real[0] = d_exec[0] = 0
         accepted[0] = True
@@ -261,7 +285,9 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
                 _, c, chunk, t_done, _ = msg
                 in_flight.discard(c)
                 lat[c] = t_done - t_req_of[c]
-                chunks[c] = chunk
+                good = _chunk_ok(chunk, H)
+                if good:
+                    chunks[c] = chunk
                 if pending is None or pending[0] != c:
                     continue  # already declared late and rejected at its deadline
                 _, r, dp = pending
@@ -269,8 +295,8 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
                 dr = k - r
                 d_real[c] = dr
                 recent = (recent + [dr])[-config.latency_window:]
-                if chunk.shape != (H, ACTION_DIM) or not np.all(np.isfinite(chunk)):
-                    fault = f"worker_error: chunk {c} has shape {list(chunk.shape)} or non-finite values"
+                if not good:
+                    fault = f"worker_error: chunk {c} has shape {list(np.shape(chunk))} or non-finite values"
                     events.append((k, "bad_chunk", c))
                     break
                 # [R-4] execute from the previous chunk for max(predicted, realized) ticks.

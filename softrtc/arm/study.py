@@ -13,15 +13,14 @@ from __future__ import annotations
 import csv
 import math
 import os
-from pathlib import Path
 
 import jax
 import numpy as np
 
 from softrtc.reference.metrics import standard_error
 
-from .env import NUM_OBJECTS
-from .executor import episode_metrics
+from .env import NUM_OBJECTS, ArmConfig
+from .executor import EpisodeRecord, episode_metrics
 from .policies import METHOD_LABELS, STUDY_METHODS, load_policies
 from .runtime import RuntimeConfig, jitter_summary, run_realtime_episode
 
@@ -49,6 +48,18 @@ def summarize(per_trial: list[dict]) -> dict:
     """One table row from per-trial metrics ([A-25], [M-6]): counts, means and standard errors."""
     if not isinstance(per_trial, list) or not per_trial or not all(isinstance(m, dict) for m in per_trial):
         raise ValueError("per_trial must be a non-empty list of episode_metrics dicts")
+    need = ("success", "completed", "completion", "throughput", "D1", "D2", "D3", "boundary", "latency_ms",
+            "hold_ticks", "fault")
+    for i, m in enumerate(per_trial):
+        missing = [k for k in need if k not in m]
+        if missing:
+            raise ValueError(f"per_trial[{i}] must be an episode_metrics dict; missing keys {missing}")
+        for k in need[:-1]:
+            v = m[k]
+            if isinstance(v, (bool, np.bool_)) and k not in ("success",):
+                raise ValueError(f"per_trial[{i}][{k!r}] must be a real number, got {v!r}")
+            if not isinstance(v, (bool, np.bool_, int, float, np.integer, np.floating)):
+                raise ValueError(f"per_trial[{i}][{k!r}] must be a real number, got {v!r}")
     n = len(per_trial)
     row = {"trials": n, "successes": sum(m["success"] for m in per_trial),
            "objects": sum(m["completed"] for m in per_trial), "objects_total": NUM_OBJECTS * n}
@@ -64,6 +75,15 @@ def format_table(rows: dict) -> str:
     """The paper's hardware table as text: ``{method: summarize(...)}`` -> aligned columns ([A-25])."""
     if not isinstance(rows, dict) or not rows:
         raise ValueError("rows must be a non-empty dict {method: summary row}")
+    need = ("successes", "trials", "objects", "objects_total")
+    for m, r in rows.items():
+        if not isinstance(r, dict):
+            raise ValueError(f"rows[{m!r}] must be a summarize() dict, got {type(r).__name__}")
+        missing = [k for k in need if k not in r] + [k2 for k in ("completion", "throughput", "D1", "D2", "D3",
+                                                                  "boundary", "latency_ms")
+                                                     for k2 in (k, k + "_se") if k2 not in r]
+        if missing:
+            raise ValueError(f"rows[{m!r}] must be a summarize() dict; missing keys {missing}")
 
     def pm(r, k, fmt):
         # A single trial has no standard error ([M-6] needs n >= 2): print a dash, not nan.
@@ -90,8 +110,17 @@ def plot_traces(records: dict, path) -> str:
 
     if not isinstance(records, dict) or not records:
         raise ValueError("records must be a non-empty dict {method: EpisodeRecord}")
-    if not isinstance(path, (str, os.PathLike)) or not os.fspath(path).endswith(".png"):
+    for m, rec in records.items():
+        if not isinstance(rec, EpisodeRecord):
+            raise ValueError(f"records[{m!r}] must be an EpisodeRecord, got {type(rec).__name__}")
+    if not isinstance(path, (str, os.PathLike)) or not isinstance(os.fspath(path), str) \
+            or not os.fspath(path).endswith(".png"):
         raise ValueError(f"path must end in '.png', got {path!r}")
+    parent = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(parent):
+        raise ValueError(f"path's folder {parent!r} does not exist")
+    if os.path.isdir(path):
+        raise ValueError(f"path {os.fspath(path)!r} is a folder, expected a .png file name")
     fig, axes = plt.subplots(len(records), 1, figsize=(9, 2.4 * len(records)), sharex=True, squeeze=False)
     for ax, (m, rec) in zip(axes[:, 0], records.items()):
         t = np.arange(rec.steps) * rec.dt
@@ -123,14 +152,19 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
     trials of a method ([R-9]). ``verbose`` prints the table and the jitter
     lines, and with ``announce_files`` the paths written.
     """
-    from .policies import _check_int, _check_float
+    from .policies import _check_int, _check_float, _check_out_dir
 
     trials = _check_int("trials", trials, 1, 10000)
     seed0 = _check_int("seed0", seed0, 0, 2**31 - 1)
     key_seed = _check_int("key_seed", key_seed, 0, 2**31 - 1)
     added_latency_s = _check_float("added_latency_s", added_latency_s, 0.0, 10.0)
-    if not isinstance(out_dir, (str, os.PathLike)):
-        raise ValueError(f"out_dir must be a str or PathLike, got {out_dir!r}")
+    out = _check_out_dir(out_dir)
+    for name in ("results.csv", "summary.csv", "traces.png"):
+        if (out / name).is_dir():
+            raise ValueError(f"out_dir {str(out)!r} holds a folder {name!r} where the study writes a file")
+    limit_max = ArmConfig().max_steps
+    if max_steps is not None:
+        max_steps = _check_int("max_steps", max_steps, 1, limit_max)
     for name, flag in (("plot", plot), ("verbose", verbose), ("announce_files", announce_files)):
         if not isinstance(flag, bool):
             raise ValueError(f"{name} must be True or False, got {flag!r}")
@@ -140,7 +174,6 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
     policies = load_policies(checkpoint_dir, methods)
     for p in policies.values():
         p.warmup()
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cfg = RuntimeConfig(added_latency_s=added_latency_s)
     base_key = jax.random.key(key_seed)
