@@ -39,6 +39,12 @@ class ExpertData:
     return_: np.ndarray  # [S, E] float
     length: np.ndarray  # [S, E] float
 
+    def __post_init__(self):
+        # [K-15], [N-7]: the constructor validates like load_expert_data (done becomes bool).
+        checked = _check_expert_arrays({f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
+        for k, v in checked.items():
+            object.__setattr__(self, k, v)
+
     @property
     def num_steps(self) -> int:
         return int(self.obs.shape[0])
@@ -76,15 +82,31 @@ def expert_data_filename(level_name: str) -> str:
     return f"worlds_l_{level_name}.npz"
 
 
-def _validate_arrays(arrays: dict[str, Any]) -> ExpertData:
+def _check_expert_arrays(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Validate the six arrays of [K-14] / [K-15]; returns them with ``done`` as bool.
+
+    Real numeric dtypes only ([N-7]): ``obs``, ``action``, ``return_`` and
+    ``length`` must be integer or float; ``solved`` and ``done`` are flags and
+    may also be boolean; ``done`` must hold 0/1 only. Boolean float keys,
+    strings, complex numbers, datetimes and timedeltas are rejected, not cast.
+    """
     missing = [k for k in EXPERT_KEYS if k not in arrays]
     if missing:
         raise ValueError(f"expert data is missing key(s) {', '.join(missing)}; required keys: {', '.join(EXPERT_KEYS)}")
     out: dict[str, np.ndarray] = {}
     for k, rank in EXPERT_KEYS.items():
-        a = np.asarray(arrays[k])
-        if a.dtype == object:
-            raise ValueError(f"expert data key {k!r} must be a numeric array, got dtype object")
+        v = arrays[k]
+        if v is None or isinstance(v, (str, bytes)):
+            raise ValueError(f"expert data key {k!r} must be a real numeric array, got {type(v).__name__}")
+        try:
+            a = np.asarray(v)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"expert data key {k!r} must be a real numeric array: {e}") from e
+        flag = k in ("done", "solved")
+        allowed = "biuf" if flag else "iuf"
+        if a.dtype.kind not in allowed:
+            want = "bool, integer or float" if flag else "integer or float (real numeric; bool, complex, string rejected)"
+            raise ValueError(f"expert data key {k!r} must have dtype {want}, got dtype {a.dtype}")
         if a.ndim != rank:
             want = "[steps, envs, dim]" if rank == 3 else "[steps, envs]"
             raise ValueError(f"expert data key {k!r} must have rank {rank} {want}, got shape {a.shape}")
@@ -103,22 +125,21 @@ def _validate_arrays(arrays: dict[str, Any]) -> ExpertData:
     # done is a flag; accept bool or 0/1 numbers, nothing else.
     done = out["done"]
     if done.dtype != np.bool_:
-        if not np.issubdtype(done.dtype, np.number) or not np.all(np.isin(done, (0, 1))):
-            raise ValueError(f"expert data key 'done' must be boolean (or 0/1), got dtype {done.dtype}")
+        if not np.all(np.isin(done, (0, 1))):
+            raise ValueError(f"expert data key 'done' must be boolean (or 0/1), got dtype {done.dtype} with other values")
         done = done.astype(bool)
     out["done"] = done
     for k in ("obs", "action", "solved", "return_", "length"):
         a = out[k]
-        if a.dtype == np.bool_:
-            a = a.astype(np.float32)
-        if not np.issubdtype(a.dtype, np.number) or np.issubdtype(a.dtype, np.complexfloating):
-            raise ValueError(f"expert data key {k!r} must be a real numeric array, got dtype {a.dtype}")
-        if not np.all(np.isfinite(a)):
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
             raise ValueError(f"expert data key {k!r} contains non-finite values (NaN or inf)")
-        out[k] = a
     if np.any(out["length"] < 0):
         raise ValueError("expert data key 'length' must be >= 0")
-    return ExpertData(**out)
+    return out
+
+
+def _validate_arrays(arrays: dict[str, Any]) -> ExpertData:
+    return ExpertData(**_check_expert_arrays(arrays))
 
 
 def load_expert_data(path: str | os.PathLike) -> ExpertData:
@@ -153,15 +174,20 @@ def save_expert_data(path: str | os.PathLike, data: ExpertData | dict[str, Any])
     """Write ``data`` in the release format (``np.savez``, keys of [K-14])."""
     if not isinstance(path, (str, os.PathLike)):
         raise ValueError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+    p = Path(path)
+    target = p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
+    if target.is_dir():
+        raise ValueError(f"path must name a file, but {target} is a directory")
+    if not target.parent.is_dir():
+        raise ValueError(f"path's folder {target.parent} does not exist or is not a directory")
     if isinstance(data, ExpertData):
         arrays = dataclasses.asdict(data)
     elif isinstance(data, dict):
         arrays = dataclasses.asdict(_validate_arrays(data))
     else:
         raise ValueError(f"data must be an ExpertData or a dict of arrays, got {type(data).__name__}")
-    p = Path(path)
-    np.savez(p, **arrays)
-    return p if p.suffix == ".npz" else p.with_name(p.name + ".npz")
+    np.savez(target, **arrays)
+    return target
 
 
 # ----------------------------------------------------------------------------
@@ -229,6 +255,10 @@ def make_chunks(
     n = data.num_steps * data.num_envs
     if starts.ndim != 1 or not (np.issubdtype(starts.dtype, np.integer)):
         raise ValueError(f"starts must be a 1-D integer array, got dtype {starts.dtype} shape {starts.shape}")
+    if starts.size == 0:
+        raise ValueError("starts must hold at least one start index (no empty axis, [N-12])")
+    if horizon > n:
+        raise ValueError(f"horizon must be <= envs * steps = {n}, got {horizon}")
     if starts.size and (starts.min() < 0 or starts.max() > n - horizon):
         raise ValueError(f"starts must lie in [0, {n - horizon}] (envs * steps - horizon), got range [{starts.min()}, {starts.max()}]")
     obs = flatten_env_major(data.obs)

@@ -35,6 +35,8 @@ from kinetix.environment.env_state import EnvParams, StaticEnvParams
 from kinetix.environment.spaces import ActionType, ObservationType
 from kinetix.util.saving import load_from_json_file
 
+from .limits import BATCH_MAX, NUM_ENVS_MAX, NUM_STEPS_MAX, REPEATS_MAX
+
 # [K-1] the benchmark's level set, in the order the public release lists it.
 LEVEL_NAMES: tuple[str, ...] = (
     "grasp_easy",
@@ -89,7 +91,10 @@ def _check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
 def _check_nonneg_float(name: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ValueError(f"{name} must be a finite real number >= 0, got {value!r}")
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:
+        raise ValueError(f"{name} must be a finite real number >= 0, got a value too large for a float") from None
     if not math.isfinite(value) or value < 0.0:
         raise ValueError(f"{name} must be a finite real number >= 0, got {value}")
     return value
@@ -117,7 +122,15 @@ def _check_action(name: str, action: Any, shape: tuple[int, ...]) -> jax.Array:
     # Only static properties are checked: values are traced under jit.
     a_shape = getattr(action, "shape", None)
     if a_shape is None:
-        action = jnp.asarray(action)
+        if action is None or isinstance(action, (str, bytes)):
+            raise ValueError(f"{name} must be a floating-point array of shape {shape}, got {type(action).__name__}")
+        try:
+            host = np.asarray(action)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{name} must be a floating-point array of shape {shape}: {e}") from e
+        if host.dtype.kind != "f":
+            raise ValueError(f"{name} must be a floating-point array of shape {shape}, got dtype {host.dtype}")
+        action = jnp.asarray(host)
         a_shape = action.shape
     if tuple(a_shape) != shape:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(a_shape)}")
@@ -158,9 +171,7 @@ def resolve_levels_dir(levels_dir: str | os.PathLike | None = None, names=LEVEL_
     searched (or saying why there is no default); ``ValueError`` for an
     unknown level name or a ``levels_dir`` that is not a path.
     """
-    names = tuple(names)
-    for n in names:
-        _check_level_name(n)
+    names = _check_names(names)
     files = ", ".join(n + ".json" for n in names)
     if levels_dir is None:
         d = default_levels_dir()
@@ -189,6 +200,19 @@ def resolve_levels_dir(levels_dir: str | os.PathLike | None = None, names=LEVEL_
     if missing:
         raise FileNotFoundError(f"Kinetix level files missing from {d}: {', '.join(missing)}")
     return d
+
+
+def _check_names(names: Any) -> tuple[str, ...]:
+    # A single str is one level name, not a sequence of characters.
+    if isinstance(names, str):
+        return (_check_level_name(names),)
+    if not isinstance(names, (list, tuple)):
+        raise ValueError(f"names must be a level name or a non-empty list/tuple of level names, got {type(names).__name__}")
+    if not names:
+        raise ValueError("names must hold at least one level name, got an empty sequence")
+    for n in names:
+        _check_level_name(n)
+    return tuple(names)
 
 
 def _check_level_name(level_name: Any) -> str:
@@ -224,7 +248,21 @@ def load_level(level_name: str, levels_dir: str | os.PathLike | None = None):
         raw_static, raw_params = raw["static_env_params"], raw["env_params"]
     except (ValueError, KeyError, TypeError) as e:
         raise ValueError(f"level file {path} is not a kinetix level JSON: {e}") from e
+    for field, value in (("static_env_params", raw_static), ("env_params", raw_params)):
+        if not isinstance(value, dict):
+            raise ValueError(f"level file {path} field {field!r} must be a JSON object, got {type(value).__name__}")
+    try:
+        level, file_static, _ = _load_level_file(path, raw_static, raw_params)
+    except (KeyError, TypeError, AttributeError, IndexError) as e:
+        raise ValueError(f"level file {path} is not a valid kinetix level JSON: {type(e).__name__}: {e}") from e
     want = benchmark_static_env_params()
+    got = file_static.replace(screen_dim=want.screen_dim, downscale=want.downscale)
+    if got != want:
+        raise ValueError(f"level file {path} has static params {file_static}, expected {want}")
+    return level
+
+
+def _load_level_file(path: Path, raw_static: dict, raw_params: dict):
     for field, value in {**LARGE_ENV_PARAMS, "frame_skip": FRAME_SKIP}.items():
         if field in raw_static and raw_static[field] != value:
             raise ValueError(f"level file {path} has {field}={raw_static[field]}, expected {value}")
@@ -233,11 +271,7 @@ def load_level(level_name: str, levels_dir: str | os.PathLike | None = None):
             f"level file {path} has max_timesteps={raw_params['max_timesteps']}, expected {MAX_TIMESTEPS}"
         )
     # kinetix resolves relative paths inside its own package, so pass absolute.
-    level, file_static, _ = load_from_json_file(str(path))
-    got = file_static.replace(screen_dim=want.screen_dim, downscale=want.downscale)
-    if got != want:
-        raise ValueError(f"level file {path} has static params {file_static}, expected {want}")
-    return level
+    return load_from_json_file(str(path))
 
 
 # ----------------------------------------------------------------------------
@@ -264,6 +298,47 @@ class KinetixTask:
     action_dim: int
     action_noise_std: float = ACTION_NOISE_STD
 
+    def __post_init__(self):
+        # [K-12], [N-7]: build with make_env; a hand-built task is checked field by field.
+        _check_level_name(self.level_name)
+        if not isinstance(self.levels_dir, Path):
+            raise ValueError(f"levels_dir must be a pathlib.Path, got {type(self.levels_dir).__name__}")
+        if not (callable(getattr(self.env, "reset", None)) and callable(getattr(self.env, "step", None))):
+            raise ValueError(f"env must be a kinetix environment with reset/step, got {type(self.env).__name__}")
+        if not isinstance(self.env_params, EnvParams):
+            raise ValueError(f"env_params must be a kinetix EnvParams, got {type(self.env_params).__name__}")
+        if not isinstance(self.static_env_params, StaticEnvParams):
+            raise ValueError(f"static_env_params must be a kinetix StaticEnvParams, got {type(self.static_env_params).__name__}")
+        if self.level is None or not hasattr(self.level, "polygon"):
+            raise ValueError(f"level must be a kinetix EnvState (from load_level), got {type(self.level).__name__}")
+        _check_int("obs_dim", self.obs_dim, 1)
+        _check_int("action_dim", self.action_dim, 1)
+        object.__setattr__(self, "action_noise_std", _check_nonneg_float("action_noise_std", self.action_noise_std))
+
+    def _state_template(self):
+        # Shapes/dtypes of one env's state, from an abstract reset (cached per task).
+        tmpl = self.__dict__.get("_state_shape")
+        if tmpl is None:
+            tmpl = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.key(0))
+            object.__setattr__(self, "_state_shape", tmpl)
+        return tmpl
+
+    def _check_state(self, state, batch: int | None) -> None:
+        tmpl = self._state_template()
+        want_def = jax.tree.structure(tmpl)
+        try:
+            got_def = jax.tree.structure(state)
+        except Exception as e:  # pragma: no cover - exotic pytrees
+            raise ValueError(f"state must be a kinetix env state from reset, got {type(state).__name__}") from e
+        if got_def != want_def:
+            raise ValueError(f"state must be a kinetix env state from reset/step (same structure), got {type(state).__name__}")
+        lead = () if batch is None else (batch,)
+        for want, got in zip(jax.tree.leaves(tmpl), jax.tree.leaves(state)):
+            shape = tuple(getattr(got, "shape", np.shape(got)))
+            if shape != lead + tuple(want.shape):
+                what = "state" if batch is None else f"state (batched, leading dimension n={batch})"
+                raise ValueError(f"{what} leaf must have shape {lead + tuple(want.shape)}, got {shape}")
+
     def reset(self, key: jax.Array):
         """``(obs [obs_dim], state)`` at the level's initial state [K-7], [K-9]."""
         _check_key("key", key)
@@ -283,6 +358,7 @@ class KinetixTask:
         """
         _check_key("key", key)
         action = _check_action("action", action, (self.action_dim,))
+        self._check_state(state, None)
         noise_key, env_key = jax.random.split(key)
         noisy = action + self.action_noise_std * jax.random.normal(noise_key, action.shape, action.dtype)
         # [K-10]: timeout = the step count reaches the limit on this step and the goal is not reached;
@@ -301,7 +377,7 @@ class KinetixTask:
     def reset_batch(self, key: jax.Array, n: int):
         """``n`` independent resets, ``obs`` of shape ``[n, obs_dim]`` [K-11]."""
         _check_key("key", key)
-        n = _check_int("n", n, 1)
+        n = _check_int("n", n, 1, BATCH_MAX)
         return jax.vmap(self.reset)(jax.random.split(key, n))
 
     def step_batch(self, key: jax.Array, state, action: jax.Array):
@@ -315,9 +391,7 @@ class KinetixTask:
             raise ValueError(f"action must have shape [n >= 1, {self.action_dim}], got {shape}")
         n = shape[0]
         _check_action("action", action, (n, self.action_dim))
-        lead = {x.shape[0] if x.ndim else None for x in jax.tree.leaves(state)}
-        if lead != {n}:
-            raise ValueError(f"state must be batched with leading dimension n={n} (from action), got {sorted(map(str, lead))}")
+        self._check_state(state, n)
         return jax.vmap(self.step)(jax.random.split(key, n), state, action)
 
 
@@ -375,15 +449,21 @@ def random_actions(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
         raise ValueError(f"key must be a JAX PRNG key (jax.random.key or jax.random.PRNGKey), got {key!r}")
     if not isinstance(shape, (tuple, list)):
         raise ValueError(f"shape must be a tuple of integers >= 1, got {shape!r}")
-    shape = tuple(_check_int("shape entry", n, 1) for n in shape)
+    if not shape:
+        raise ValueError("shape must be a non-empty tuple of integers >= 1, got ()")
+    shape = tuple(_check_int("shape entry", n, 1, BATCH_MAX) for n in shape)
+    if math.prod(shape) * ACTION_DIM > 2**31 - 1:
+        raise ValueError(f"shape must have prod(shape) * {ACTION_DIM} <= 2^31 - 1 values, got {shape}")
     a = jax.random.uniform(key, (*shape, ACTION_DIM), minval=-1.0, maxval=1.0)
     return a.at[..., NUM_MOTOR_BINDINGS:].set(jnp.abs(a[..., NUM_MOTOR_BINDINGS:]))
 
 
 def make_random_rollout(task: KinetixTask, num_envs: int, num_steps: int):
     """Jittable ``rollout(key) -> summary`` stepping ``num_envs`` envs ``num_steps`` times [K-13]."""
-    num_envs = _check_int("num_envs", num_envs, 1)
-    num_steps = _check_int("num_steps", num_steps, 1)
+    if not isinstance(task, KinetixTask):
+        raise ValueError(f"task must be a KinetixTask (from make_env), got {type(task).__name__}")
+    num_envs = _check_int("num_envs", num_envs, 1, BATCH_MAX)
+    num_steps = _check_int("num_steps", num_steps, 1, NUM_STEPS_MAX)
 
     def rollout(key):
         key, rkey = jax.random.split(key)
@@ -419,10 +499,10 @@ def bench_bare_env(
     ``repeats`` times; ``env_steps_per_s`` uses the fastest run.
     """
     _check_level_name(level)
-    num_envs = _check_int("num_envs", num_envs, 1)
-    num_steps = _check_int("num_steps", num_steps, 1)
+    num_envs = _check_int("num_envs", num_envs, 1, NUM_ENVS_MAX)
+    num_steps = _check_int("num_steps", num_steps, 1, NUM_STEPS_MAX)
     seed = _check_int("seed", seed, 0, 2**32 - 1)
-    repeats = _check_int("repeats", repeats, 1)
+    repeats = _check_int("repeats", repeats, 1, REPEATS_MAX)
     task = make_env(level, levels_dir)
     key = jax.random.key(seed)
     t0 = time.perf_counter()

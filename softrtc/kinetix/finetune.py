@@ -58,7 +58,10 @@ def _shape(tree: Mapping, *path) -> tuple:
         node = node[k] if k in node else node.get(str(k)) if str(k) in node else None
         if node is None:
             raise ValueError(f"pure_dict is missing key '{'/'.join(map(str, path))}'")
-    return tuple(np.shape(node))
+    shape = tuple(np.shape(node))
+    if len(shape) != 2:
+        raise ValueError(f"pure_dict key '{'/'.join(map(str, path))}' must be a 2-D kernel [in, out], got shape {shape}")
+    return shape
 
 
 def infer_policy_shape(pure_dict: Mapping) -> tuple[int, int, PolicyConfig]:
@@ -105,10 +108,19 @@ def find_bc_file(bc_dir: str | os.PathLike, level: str) -> Path:
 
 
 def _read_pure_dict(path: Any) -> Mapping:
-    if not isinstance(path, (str, os.PathLike)) or not Path(path).is_file():
-        raise FileNotFoundError(f"path must name an existing policy file, got {path!r}")
-    with open(path, "rb") as f:
-        return pickle.load(f)
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path must be a str or os.PathLike naming a release policy .pkl file, got {type(path).__name__}")
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"path must name an existing policy file, got {str(path)!r}")
+    try:
+        with open(path, "rb") as f:
+            pure = pickle.load(f)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError, IndexError, TypeError, ValueError) as e:
+        raise ValueError(f"path {str(path)!r} is not a readable release policy pickle ([KE-10]): "
+                         f"{type(e).__name__}: {e}") from e
+    if not isinstance(pure, Mapping):
+        raise ValueError(f"path {str(path)!r} must hold a pure dict (nested mapping of arrays), got {type(pure).__name__}")
+    return pure
 
 
 def bc_policy_shape(path: str | os.PathLike) -> tuple[int, int, PolicyConfig]:
@@ -159,6 +171,19 @@ def load_level_policy(policy_dir: str | os.PathLike, level: str) -> FlowPolicy:
     return load_bc_policy(path)
 
 
+def _check_out_dir(out: Path, name: str) -> None:
+    """``out`` must be a folder, or creatable as one, and ``out/name`` not a folder ([N-11])."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir must be a directory (or a path to create), but {out} is a file")
+    anc = out
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if anc.exists() and not anc.is_dir():
+        raise ValueError(f"out_dir {out} cannot be created: {anc} is a file")
+    if (out / name).is_dir():
+        raise ValueError(f"out_dir must not hold a directory named {name}: {out / name}")
+
+
 def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level: str, method: str,
                    out_dir: str | os.PathLike, *, window: ref_weights.SoftWindow | None = None,
                    execute_horizon: int = 4, d_max: int = 4, delay_dist: str = "uniform",
@@ -188,10 +213,11 @@ def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level
                               ("execute_horizon", execute_horizon, 1, MAX_DELAY)):
         if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or not lo <= val <= hi:
             raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {val!r}")
-    data_path = _check_dir("data_dir", data_dir) / kdata.expert_data_filename(level)
-    bc_path = find_bc_file(bc_dir, level)
     if not isinstance(out_dir, (str, os.PathLike)):
         raise ValueError(f"out_dir must be a directory path, got {type(out_dir).__name__}")
+    _check_out_dir(Path(out_dir), f"{level}.npz")
+    data_path = _check_dir("data_dir", data_dir) / kdata.expert_data_filename(level)
+    bc_path = find_bc_file(bc_dir, level)
     if not data_path.is_file():
         raise FileNotFoundError(f"data_dir {data_path.parent} has no {data_path.name}")
     policy = load_bc_policy(bc_path)

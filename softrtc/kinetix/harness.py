@@ -27,6 +27,7 @@ import copy
 import csv
 import dataclasses
 import math
+import numbers
 import re
 import os
 import sys
@@ -129,6 +130,16 @@ class MethodSpec:
             raise ValueError(f"label must be a string, got {type(self.label).__name__}")
         if not self.label:
             object.__setattr__(self, "label", self.method)
+        # [KE-2], [KE-8]: a label that reads as a method string must name this method and window,
+        # so a table row is never shown under another method's name; other labels are free text.
+        try:
+            name, window = _parse_method_parts(self.label)
+        except ValueError:
+            return
+        if (name, window) != (self.method, self.window):
+            raise ValueError(f"label {self.label!r} parses as method {name!r} with window {window}, "
+                             f"but this MethodSpec is method {self.method!r} with window {self.window}; "
+                             f"label must be a free-form name or a method string of this method and window")
 
     @property
     def display(self) -> str:
@@ -148,6 +159,14 @@ def parse_method(text: str) -> MethodSpec:
     (default 8), ``fixed:H``, ``hard``; optionally followed by
     ``:zeros`` to select ``overflow="zeros"`` ([W-6]); ``train_soft:zeros`` is the main window zero-padded.
     """
+    name, window = _parse_method_parts(text)
+    if window is None or text.strip() == name:
+        return MethodSpec(name)
+    return MethodSpec(name, window, label=text.strip())
+
+
+def _parse_method_parts(text: Any) -> tuple:
+    """``(method, window)`` of a method string ([KE-2]); ``window`` is None for methods other than train_soft."""
     if not isinstance(text, str) or not text.strip():
         raise ValueError(f"method must be a non-empty string such as 'train_soft:delay_scaled:2', got {text!r}")
     parts = [p.strip() for p in text.strip().split(":")]
@@ -155,14 +174,14 @@ def parse_method(text: str) -> MethodSpec:
     if name not in METHODS:
         raise ValueError(f"method must start with one of {', '.join(METHODS)}, got {text!r}")
     if len(parts) == 1:
-        return MethodSpec(name)
+        return name, (ref_weights.SoftWindow() if name == "train_soft" else None)
     if name != "train_soft":
         raise ValueError(f"method {name!r} takes no window parameters, got {text!r}")
     overflow = "clip"
     if parts[-1] == "zeros":
         overflow, parts = "zeros", parts[:-1]
     if len(parts) == 1:  # train_soft:zeros, the main window with zero padding
-        return MethodSpec("train_soft", ref_weights.SoftWindow(overflow=overflow), label=text.strip())
+        return "train_soft", ref_weights.SoftWindow(overflow=overflow)
     rule_name, args = (parts[1], parts[2:]) if len(parts) > 1 else ("delay_scaled", [])
     # Plain ASCII decimals only: Python's int/float would also take "1_0" (10) or other scripts' digits.
     if not all(re.fullmatch(r"[0-9]+(\.[0-9]+)?", a) for a in args):
@@ -183,7 +202,7 @@ def parse_method(text: str) -> MethodSpec:
             f"method {text!r} is not a valid soft window: use train_soft:delay_scaled:LAM[:H_MAX], "
             f"train_soft:offset:L[:H_MAX], train_soft:fixed:H or train_soft:hard, optionally ':zeros' ({exc})"
         ) from None
-    return MethodSpec("train_soft", ref_weights.SoftWindow(rule, overflow=overflow), label=text.strip())
+    return "train_soft", ref_weights.SoftWindow(rule, overflow=overflow)
 
 
 # The rows of the paper's main table whose method differs ([KE-2]); N=1 and N=2 are lam = 1, 2.
@@ -380,11 +399,18 @@ class Rollout:
         if not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key) or keys.shape != (self.num_envs,):
             raise ValueError(f"keys must be a typed PRNG key array of shape ({self.num_envs},), "
                              f"got {keys.dtype} {tuple(keys.shape)}")
-        ds = np.asarray(delays)
         hi = min(self.s, self.H - self.s)
-        if ds.shape != (self.num_envs,) or not np.issubdtype(ds.dtype, np.integer) or ds.min() < 0 or ds.max() > hi:
-            raise ValueError(f"delays must be an integer array of shape ({self.num_envs},) with entries in "
-                             f"[0, {hi}] ([X-1]), got {ds.dtype} {ds.shape} {ds.tolist()[:8]}")
+        want = f"delays must be an integer array of shape ({self.num_envs},) with entries in [0, {hi}] ([X-1])"
+        if delays is None or isinstance(delays, (str, bytes)):
+            raise ValueError(f"{want}, got {type(delays).__name__}")
+        try:
+            ds = np.asarray(delays)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{want}: {e}") from e
+        if ds.shape != (self.num_envs,) or ds.dtype.kind not in "iu":
+            raise ValueError(f"{want}, got dtype {ds.dtype} shape {ds.shape}")
+        if ds.min() < 0 or ds.max() > hi:
+            raise ValueError(f"{want}, got {np.ravel(ds).tolist()[:8]}")
         pad = self.padded - self.num_envs
         if pad:  # exact copies of env 0, key and delay ([KE-4]); their results are dropped
             keys = jnp.concatenate([keys, jnp.broadcast_to(keys[:1], (pad,))])
@@ -439,7 +465,19 @@ def make_rollout(task: kenv.KinetixTask, policy: FlowPolicy, family: str, num_en
     s = _check_int("execute_horizon", execute_horizon, 1, H)
     T = _check_int("num_flow_steps", num_flow_steps, 1, 1024)
     steps = _check_int("episode_steps", episode_steps, EPISODE_STEPS_MIN, EPISODE_STEPS_MAX)
-    devs = list(jax.devices()) if devices is None else list(devices)
+    if devices is None:
+        devs = list(jax.devices())
+    else:
+        if isinstance(devices, (str, bytes)) or not isinstance(devices, Sequence):
+            raise ValueError(f"devices must be None or a non-empty sequence of jax.Device objects, "
+                             f"got {type(devices).__name__}")
+        devs = list(devices)
+        bad = [d for d in devs if not isinstance(d, jax.Device)]
+        if bad:
+            raise ValueError(f"devices must be a non-empty sequence of jax.Device objects (e.g. jax.devices()), "
+                             f"got entry {bad[0]!r}")
+        if len(set(devs)) != len(devs):
+            raise ValueError("devices must not repeat a device")
     if not devs:
         raise ValueError("devices must be a non-empty sequence of JAX devices")
     mesh = Mesh(np.array(devs), ("env",))
@@ -459,9 +497,17 @@ def episode_metrics(actions: np.ndarray, length: int) -> dict:
     ``nan`` when the episode is too short for the difference ([M-1] needs
     N > k); such episodes are left out of that metric's means ([KE-7]).
     """
-    a = np.asarray(actions, np.float64)
-    if a.ndim != 2:
-        raise ValueError(f"actions must have shape [N, A], got {list(a.shape)}")
+    if actions is None or isinstance(actions, (str, bytes)):
+        raise ValueError(f"actions must be a real array of shape [N, A], got {type(actions).__name__}")
+    try:
+        a = np.asarray(actions)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"actions must be a real array of shape [N, A]: {e}") from e
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"actions must have a real numeric dtype (integer or float), got {a.dtype}")
+    a = a.astype(np.float64)
+    if a.ndim != 2 or 0 in a.shape:
+        raise ValueError(f"actions must have shape [N >= 1, A >= 1], got {list(a.shape)}")
     length = _check_int("length", length, 1, a.shape[0])
     a = a[:length]
     return {"delta": ref_metrics.action_delta(a) if length > 1 else float("nan"),
@@ -493,6 +539,9 @@ class EvalConfig:
 
     def __post_init__(self):
         levels = _as_tuple("levels", self.levels, "distinct level names", single=(str,))
+        for lv in levels:
+            if not isinstance(lv, str):
+                raise ValueError(f"levels entries must be level names among {', '.join(kenv.LEVEL_NAMES)}, got {lv!r}")
         if not levels or len(set(levels)) != len(levels):
             raise ValueError(f"levels must be a non-empty sequence of distinct level names, got {self.levels!r}")
         for lv in levels:
@@ -512,6 +561,8 @@ class EvalConfig:
         object.__setattr__(self, "methods", meths)
         s = _check_int("execute_horizon", self.execute_horizon, 1, 1 << 12)
         ds = _as_tuple("delays", self.delays, f"distinct integers in [0, {s}]")
+        for d in ds:
+            _check_int("delays entries", d, 0, s)
         if not ds or len(set(ds)) != len(ds):
             raise ValueError(f"delays must be a non-empty sequence of distinct integers in [0, {s}], "
                              f"got {self.delays!r}")
@@ -556,7 +607,7 @@ def _resolve_policy(policies, spec: MethodSpec, level: str) -> FlowPolicy:
     return pol
 
 
-def evaluate(config: EvalConfig, policies, *, progress: bool = True, log=None) -> dict:
+def evaluate(config: EvalConfig, policies, *, progress: bool = True) -> dict:
     """Run the protocol of ``config`` ([KE-1]..[KE-7]); returns ``{"episodes": rows, "compile_s": {...}}``.
 
     ``policies`` is a :class:`FlowPolicy` used for every method and level, a
@@ -638,6 +689,30 @@ def _nanmean(x) -> float:
     return float(x.mean()) if x.size else float("nan")
 
 
+def _check_rows(rows: list) -> None:
+    """Episode rows of :func:`evaluate` ([KE-8]): str method/level, int delay, real metric values."""
+    need = ("method", "level", "delay", *METRICS)
+    for i, r in enumerate(rows):
+        if not isinstance(r, Mapping) or any(k not in r for k in need):
+            raise ValueError(f"rows[{i}] must be a mapping with keys {list(need)} (an episode row of evaluate), "
+                             f"got {r if not isinstance(r, Mapping) else sorted(map(str, r))}")
+        for k in ("method", "level"):
+            if not isinstance(r[k], str) or not r[k]:
+                raise ValueError(f"rows[{i}][{k!r}] must be a non-empty string, got {r[k]!r}")
+        _check_int(f"rows[{i}]['delay']", r["delay"], 0, 4096)
+        for k in METRICS:
+            v = r[k]
+            ok = isinstance(v, (numbers.Real, np.bool_)) and not isinstance(v, np.datetime64)
+            if k != "solved" and isinstance(v, (bool, np.bool_)):
+                ok = False
+            if ok and k in ("return", "solved") and not math.isfinite(float(v)):
+                ok = False
+            if not ok:
+                what = "a bool or 0/1 number" if k == "solved" else (
+                    "a finite real number" if k == "return" else "a real number (NaN when undefined)")
+                raise ValueError(f"rows[{i}][{k!r}] must be {what}, got {v!r}")
+
+
 def summarize(rows: Iterable[Mapping], *, bootstrap_resamples: int = 10000, bootstrap_seed: int = 0) -> dict:
     """Per-level and pooled metrics ([M-4], [M-5], [M-7], [KE-7]).
 
@@ -647,15 +722,13 @@ def summarize(rows: Iterable[Mapping], *, bootstrap_resamples: int = 10000, boot
     bootstrap 95% interval over levels. Returns ``{"per_level": [...],
     "pooled": [...]}`` row lists.
     """
+    if isinstance(rows, (str, bytes, Mapping)) or not isinstance(rows, Iterable):
+        raise ValueError(f"rows must be an iterable of episode rows (mappings, as in evaluate()['episodes']), "
+                         f"got {type(rows).__name__}")
     rows = list(rows)
     if not rows:
         raise ValueError("rows must hold at least one episode row")
-    need = ("method", "level", "delay", *METRICS)
-    for i, r in enumerate(rows):
-        if not isinstance(r, Mapping) or any(k not in r for k in need):
-            raise ValueError(f"rows[{i}] must be a mapping with keys {list(need)} (an episode row of evaluate), "
-                             f"got {r if not isinstance(r, Mapping) else sorted(r)}")
-        _check_int(f"rows[{i}]['delay']", r["delay"], 0, 4096)
+    _check_rows(rows)
     _check_int("bootstrap_resamples", bootstrap_resamples, 1, 10**7)
     _check_int("bootstrap_seed", bootstrap_seed, 0, 2**32 - 1)
     methods = list(dict.fromkeys(r["method"] for r in rows))
@@ -710,6 +783,21 @@ def main_table(summary: Mapping) -> str:
     """
     if not isinstance(summary, Mapping) or "pooled" not in summary:
         raise ValueError("summary must be the dict returned by summarize()")
+    need = ("method", "scope", *METRICS, *(k + "_lo" for k in METRICS), *(k + "_hi" for k in METRICS))
+    if isinstance(summary["pooled"], (str, bytes, Mapping)) or not isinstance(summary["pooled"], Sequence):
+        raise ValueError("summary['pooled'] must be the list of pooled rows returned by summarize()")
+    for i, r in enumerate(summary["pooled"]):
+        if not isinstance(r, Mapping):
+            raise ValueError(f"summary['pooled'][{i}] must be a mapping (a pooled row of summarize()), got {r!r}")
+        missing = [k for k in need if k not in r]
+        if missing:
+            raise ValueError(f"summary['pooled'][{i}] is missing key(s) {', '.join(missing)}")
+        if not isinstance(r["method"], str) or r["scope"] not in SCOPES:
+            raise ValueError(f"summary['pooled'][{i}] must have a str 'method' and 'scope' in {SCOPES}, "
+                             f"got {r['method']!r}, {r['scope']!r}")
+        for k in need[2:]:
+            if isinstance(r[k], bool) or not isinstance(r[k], numbers.Real):
+                raise ValueError(f"summary['pooled'][{i}][{k!r}] must be a real number, got {r[k]!r}")
     cols = [("overall", "return", "Overall Return"), ("overall", "solved", "Overall Solve"),
             ("high", "solved", "High-delay Solve"), ("high", "jerk", "High-delay Jerk ↓"),
             ("overall", "delta", "Overall Delta ↓"), ("overall", "jerk", "Overall Jerk ↓"),
@@ -746,8 +834,19 @@ def write_results(result: Mapping, out_dir: str | os.PathLike, *, bootstrap_resa
     if not isinstance(out_dir, (str, os.PathLike)):
         raise ValueError(f"out_dir must be a path, got {type(out_dir).__name__}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir must be a directory (or a path to create), but {out} is a file")
+    anc = out
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if anc.exists() and not anc.is_dir():
+        raise ValueError(f"out_dir {out} cannot be created: {anc} is a file")
+    for name in ("episodes.csv", "per_level.csv", "pooled.csv", "table.md"):
+        if (out / name).is_dir():
+            raise ValueError(f"out_dir must not hold a directory named {name}: {out / name}")
+    # Rows are checked and summarized before anything is created.
     summary = summarize(result["episodes"], bootstrap_resamples=bootstrap_resamples, bootstrap_seed=bootstrap_seed)
+    out.mkdir(parents=True, exist_ok=True)
     paths = {"episodes": out / "episodes.csv", "per_level": out / "per_level.csv",
              "pooled": out / "pooled.csv", "table": out / "table.md"}
     _write_csv(paths["episodes"], list(result["episodes"]))

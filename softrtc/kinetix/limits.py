@@ -11,7 +11,7 @@ from these without loading either.
 
 from __future__ import annotations
 
-__all__ = ["EPISODES_MAX", "EPISODE_STEPS_MIN", "EPISODE_STEPS_MAX", "NUM_ENVS_MAX", "REPEATS_MAX"]
+__all__ = ["BATCH_MAX", "EPISODES_MAX", "EPISODE_STEPS_MIN", "EPISODE_STEPS_MAX", "NUM_ENVS_MAX", "NUM_STEPS_MAX", "REPEATS_MAX"]
 
 # [KE-1] episodes per (level, delay, method): EvalConfig.episodes and ``eval --episodes``.
 EPISODES_MAX = 1 << 16
@@ -21,3 +21,8 @@ EPISODE_STEPS_MAX = 1 << 16
 # [KE-9] bench_harness num_envs / repeats and ``bench --num-envs`` / ``--repeats``.
 NUM_ENVS_MAX = 1 << 16
 REPEATS_MAX = 100
+# [K-12], [N-12] environments per batched call (reset_batch, random_actions, make_random_rollout):
+# the harness's own bound on make_rollout's num_envs.
+BATCH_MAX = 1 << 20
+# [K-13] steps per bare-env benchmark scan (bench_bare_env, make_random_rollout).
+NUM_STEPS_MAX = 1 << 20
