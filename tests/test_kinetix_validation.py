@@ -277,3 +277,21 @@ def test_rollout_delays_and_devices(task):
             ro.compile(pol, H.MethodSpec("naive"), "grasp_easy", keys, d)
     args = ro._args(pol, H.MethodSpec("naive"), "grasp_easy", keys, np.array([0, 1]))
     assert args[-1].shape == (2,)
+
+
+def test_finetune_output_folder_is_checked_before_any_input(tmp_path):
+    """[KE-10], [N-7], [N-11]: finetune_level rejects an out_dir that is a file, lies under a file, or holds a
+    folder where the level's checkpoint would go, before it reads data or release files (the data and bc
+    folders given here do not exist, so reaching them would raise FileNotFoundError instead)."""
+    f = tmp_path / "afile"
+    f.write_text("x")
+    (tmp_path / "out" / "grasp_easy.npz").mkdir(parents=True)
+    missing = tmp_path / "no-such-folder"
+    for out, word in ((f, "is a file"), (f / "sub", "cannot be created"), (tmp_path / "out", "grasp_easy.npz")):
+        with pytest.raises(ValueError, match="out_dir") as info:
+            kft.finetune_level(missing, missing, "grasp_easy", "hard", out)
+        assert word in str(info.value), info.value
+    # A valid out_dir passes its check and the call goes on to the (missing) data folder.
+    with pytest.raises((FileNotFoundError, ValueError), match="data_dir"):
+        kft.finetune_level(missing, missing, "grasp_easy", "hard", tmp_path / "new")
+    assert not (tmp_path / "new").exists()
