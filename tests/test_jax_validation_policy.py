@@ -315,3 +315,20 @@ def test_bench_rows_names_policy_and_tables_are_validated(pol):
             "architecture": {"obs_dim": 7, "action_dim": 3, "action_chunk_size": 8}, "rows": [], "chunk": {},
             "agreement": {}, "targets": [], "seconds": 1.0}
     assert "softrtc bench runtime" in bench.format_table(full)
+
+
+def test_policy_sizes_are_bounded():
+    """P-1, N-12: every PolicyConfig size and FlowPolicy's input sizes have an upper bound, checked before any
+    parameter is allocated: a typo such as 10**9 layers is a ValueError naming the field, not an exhausted
+    memory; the bounds themselves are accepted."""
+    from softrtc.jax.policy import ACTION_DIM_MAX, CONFIG_MAX, OBS_DIM_MAX
+
+    for name, hi in CONFIG_MAX.items():
+        _raises(name, lambda: PolicyConfig(**{name: hi + (2 if name == "channel_dim" else 1)}))
+        assert getattr(PolicyConfig(**{name: hi}), name) == hi
+    assert CONFIG_MAX["action_chunk_size"] == 4096
+    for name, hi in (("obs_dim", OBS_DIM_MAX), ("action_dim", ACTION_DIM_MAX)):
+        kw = {"obs_dim": OBS, "action_dim": ACT, name: hi + 1}
+        _raises(name, lambda: FlowPolicy(**kw, config=TINY, rngs=nnx.Rngs(0)))
+    # The bounds are those of the reference field ([F-3]).
+    assert (OBS_DIM_MAX, ACTION_DIM_MAX) == (1 << 20, 4096)

@@ -114,6 +114,13 @@ def _check_unit_interval(name: str, arr: jax.Array) -> None:
 # --------------------------------------------------------------------------- config
 
 
+# Upper bounds of the PolicyConfig fields ([P-1]); the chunk length is [N-12]'s H <= 4096.
+CONFIG_MAX = {"channel_dim": 1 << 16, "channel_hidden_dim": 1 << 16, "token_hidden_dim": 1 << 16,
+              "num_layers": 1024, "action_chunk_size": 4096}
+# Input sizes of FlowPolicy: the bounds of the reference velocity field ([F-3]).
+OBS_DIM_MAX, ACTION_DIM_MAX = 1 << 20, 4096
+
+
 @dataclasses.dataclass(frozen=True)
 class PolicyConfig:
     """Network sizes [P-1]; defaults are the benchmark architecture.
@@ -131,7 +138,11 @@ class PolicyConfig:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             # Stored as plain int: a NumPy integer would not survive the JSON checkpoint header.
-            object.__setattr__(self, f.name, _check_pos_int(f.name, getattr(self, f.name)))
+            value = _check_pos_int(f.name, getattr(self, f.name))
+            hi = CONFIG_MAX[f.name]
+            if value > hi:  # [P-1] [N-12]: bounded, so a typo fails here rather than exhausting memory
+                raise ValueError(f"{f.name} must be an integer in [1, {hi}], got {value}")
+            object.__setattr__(self, f.name, value)
         if self.channel_dim % 2:
             raise ValueError(f"channel_dim must be even (sin-cos embedding), got {self.channel_dim}")
 
@@ -513,6 +524,9 @@ class FlowPolicy(nnx.Module):
     def __init__(self, *, obs_dim: int, action_dim: int, config: PolicyConfig = PolicyConfig(), rngs: nnx.Rngs):
         obs_dim = _check_pos_int("obs_dim", obs_dim)
         action_dim = _check_pos_int("action_dim", action_dim)
+        for name, value, hi in (("obs_dim", obs_dim, OBS_DIM_MAX), ("action_dim", action_dim, ACTION_DIM_MAX)):
+            if value > hi:  # [P-1] [N-12]
+                raise ValueError(f"{name} must be an integer in [1, {hi}], got {value}")
         if not isinstance(config, PolicyConfig):
             raise ValueError(f"config must be a PolicyConfig, got {type(config).__name__}")
         if not isinstance(rngs, nnx.Rngs):
