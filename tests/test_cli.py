@@ -226,3 +226,31 @@ def test_kinetix_methods_spelled_twice_are_one_method(tmp_path, capsys):
         line = last_error_line(capsys)
         assert line.startswith("softrtc kinetix eval: error: ") and "same method and window" in line, line
     assert not (tmp_path / "o").exists()
+
+
+def test_shared_output_helpers(tmp_path):
+    """N-11, B-10: check_out_dir (used by every writer of a folder) accepts a folder to create and refuses a file,
+    a path under a file and a folder standing where a written file goes, naming the argument; write_atomic
+    leaves an existing file untouched and no temporary file behind when the writer fails."""
+    from softrtc._files import check_out_dir, write_atomic
+
+    f = tmp_path / "afile"
+    f.write_text("old")
+    (tmp_path / "o" / "t.md").mkdir(parents=True)
+    assert check_out_dir("out", tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
+    assert not (tmp_path / "new").exists()
+    for bad, word in ((f, "is a file"), (f / "x", "cannot be created"), (tmp_path / "o", "t.md"), ("", "non-empty"),
+                      (5, "non-empty")):
+        with pytest.raises(ValueError, match="out") as info:
+            check_out_dir("out", bad, ("t.md",))
+        assert word in str(info.value), info.value
+
+    def broken(fh):
+        fh.write("partial")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        write_atomic(f, broken)
+    assert f.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["afile", "o"]
+    write_atomic(f, lambda fh: fh.write("new"))
+    assert f.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["afile", "o"]

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pymunk
 
+from softrtc.reference._validate import real_array
+
 __all__ = [
     "ArmConfig",
     "ArmSortEnv",
@@ -133,16 +135,9 @@ def _real_array(name: str, value, shape_desc: str) -> np.ndarray:
     """``value`` as a float64 array: integer/float dtype only ([N-7]); ragged, boolean, string and complex
     inputs raise ValueError naming ``name`` (no conversion). Shape and finiteness are the caller's checks."""
     try:
-        raw = np.asarray(value)
-    except (ValueError, TypeError, OverflowError):
-        raise ValueError(f"{name} must be a finite real array of shape {shape_desc}, got a ragged or "
-                         f"non-numeric value") from None
-    if raw.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must be a finite real array of shape {shape_desc}, got dtype {raw.dtype}")
-    try:
-        return raw.astype(np.float64)
-    except (ValueError, TypeError, OverflowError):
-        raise ValueError(f"{name} must be a finite real array of shape {shape_desc}") from None
+        return real_array(name, value).astype(np.float64)
+    except ValueError as exc:
+        raise ValueError(f"{exc} (expected a finite real array of shape {shape_desc})") from None
 
 
 def _check_env_config(env_config, name: str = "env_config") -> "ArmConfig":

@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softrtc._files import check_out_dir
+from softrtc.reference._validate import real_array
 from softrtc.jax import methods as jmethods
 from softrtc.jax import sampler as jsampler
 from softrtc.jax.checkpoint import load_checkpoint, save_checkpoint
@@ -166,13 +168,7 @@ def _new_model(config: ArmPolicyConfig, seed: int) -> FlowPolicy:
 
 def _real_array(name, value) -> np.ndarray:
     """``value`` as float64, rejecting booleans, strings and other non-real dtypes ([N-7])."""
-    try:
-        raw = np.asarray(value)
-    except (ValueError, TypeError, OverflowError):
-        raise ValueError(f"{name} must be a real numeric array, got a ragged or non-numeric value") from None
-    if raw.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must be a real numeric array, got dtype {raw.dtype}")
-    return raw.astype(np.float64)
+    return real_array(name, value).astype(np.float64)
 
 
 def _rows(name, value, dim) -> np.ndarray:
@@ -580,20 +576,7 @@ _DEMO_KEYS = ("obs", "action", "episode_start", "episode_length", "seed", "noise
 
 def _check_out_dir(out_dir) -> Path:
     """An output folder that exists or can be created: not a file, under a writable folder ([A-12])."""
-    if not isinstance(out_dir, (str, os.PathLike)) or not isinstance(os.fspath(out_dir), str) \
-            or not os.fspath(out_dir):
-        raise ValueError(f"out_dir must be a non-empty str or PathLike, got {out_dir!r}")
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out_dir {str(out)!r} exists and is not a folder")
-    probe = out.absolute()
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir():
-        raise ValueError(f"out_dir {str(out)!r} cannot be created: {str(probe)!r} is not a folder")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise ValueError(f"out_dir {str(out)!r} is not writable ({str(probe)!r})")
-    return out
+    return check_out_dir("out_dir", out_dir)
 
 
 def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune_steps: int | None = 800,

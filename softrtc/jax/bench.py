@@ -21,7 +21,6 @@ import numbers
 import os
 import platform
 import statistics
-import tempfile
 import time
 from typing import Any, Callable, Iterable, Mapping
 
@@ -30,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softrtc._files import write_atomic
 from softrtc.reference._validate import check_choice, check_int
 
 from .endpoints import delay_scaled
@@ -881,18 +881,5 @@ def write_json(res: dict, path: str | os.PathLike) -> None:
     if os.path.isdir(path):
         raise ValueError(f"path must be a file path, got the directory {os.fspath(path)!r}")
     text = json.dumps(_json_value(res, ""), indent=1, sort_keys=True, allow_nan=False) + "\n"
-    parent = os.path.dirname(os.path.abspath(os.fspath(path)))
-    os.makedirs(parent, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".bench-", suffix=".tmp", dir=parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        # mkstemp creates the file owner-only; give it the mode of any new file under the umask.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
+    write_atomic(path, lambda f: f.write(text), prefix=".bench-")

@@ -33,13 +33,14 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import zipfile
 import zlib
 from typing import Any, Mapping
 
 import flax.nnx as nnx
 import numpy as np
+
+from softrtc._files import write_atomic
 
 from .policy import FlowPolicy, PolicyConfig, load_pure_dict, state_pure_dict
 
@@ -155,19 +156,8 @@ def save_checkpoint(path: str | os.PathLike, policy: FlowPolicy, metadata: Mappi
     members = dict(arrays)
     members[HEADER_KEY] = np.frombuffer(json.dumps(header, sort_keys=True).encode(), np.uint8)
 
-    fd, tmp = tempfile.mkstemp(prefix=".ckpt-", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **members)  # a file object keeps numpy from appending ".npz" to the name
-        # mkstemp creates the file owner-only; give it the mode of any new file under the umask.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    # a file object keeps numpy from appending ".npz" to the name
+    write_atomic(path, lambda f: np.savez(f, **members), binary=True, prefix=".ckpt-")
 
 
 def _fail(path: Any, what: str) -> ValueError:

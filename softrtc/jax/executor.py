@@ -99,22 +99,10 @@ def execute_chunks(chunks, delays, s: int) -> dict:
     return {"actions": ch[ci, ti], "chunk_index": ci, "token_index": ti}
 
 
-def _real_dtype(dtype) -> bool:
-    return dtype != jnp.bool_ and (jnp.issubdtype(dtype, jnp.integer) or jnp.issubdtype(dtype, jnp.floating))
-
-
 def _callback_array(name: str, value, what: str):
     """What a caller's function returned, as an array of a real dtype ([N-7]); not cast yet."""
-    if isinstance(value, (jax.Array, np.ndarray)) or v.is_traced(value):
-        arr = value
-    else:
-        try:
-            arr = jnp.asarray(value)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name} must return {what}, got {type(value).__name__}") from exc
-    if not _real_dtype(arr.dtype):
-        raise ValueError(f"{name} must return {what} of a real (integer or float) dtype, got dtype {arr.dtype}")
-    return arr
+    v.real_dtype(name, value, f"return {what} of a real (integer or float) dtype")
+    return value if isinstance(value, (jax.Array, np.ndarray)) or v.is_traced(value) else jnp.asarray(value)
 
 
 def _generated(generate, H: int, args, A: int | None = None) -> jax.Array:
@@ -156,8 +144,8 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
     ds = v.int_array("delays", delays)
     if ds.ndim != 1 or ds.shape[0] < 1:
         raise ValueError(f"delays must have shape [C] with C >= 1, got {list(ds.shape)}")
-    if v.is_traced(obs0) and not _real_dtype(jnp.result_type(obs0)):
-        raise ValueError(f"obs0 must be a real numeric array, got dtype {jnp.result_type(obs0)}")
+    if v.is_traced(obs0):
+        v.real_dtype("obs0", obs0)
     obs0 = v.array("obs0", obs0)
     try:
         state_spec = jax.tree.map(lambda a: (jnp.shape(a), jnp.result_type(a)), env_state)

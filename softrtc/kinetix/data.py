@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from softrtc.reference._validate import real_array
+
 # [K-14] keys and their rank (number of dimensions) in a release file.
 EXPERT_KEYS: dict[str, int] = {
     "obs": 3,
@@ -96,17 +98,9 @@ def _check_expert_arrays(arrays: dict[str, Any]) -> dict[str, np.ndarray]:
     out: dict[str, np.ndarray] = {}
     for k, rank in EXPERT_KEYS.items():
         v = arrays[k]
-        if v is None or isinstance(v, (str, bytes)):
-            raise ValueError(f"expert data key {k!r} must be a real numeric array, got {type(v).__name__}")
-        try:
-            a = np.asarray(v)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"expert data key {k!r} must be a real numeric array: {e}") from e
         flag = k in ("done", "solved")
         allowed = "biuf" if flag else "iuf"
-        if a.dtype.kind not in allowed:
-            want = "bool, integer or float" if flag else "integer or float (real numeric; bool, complex, string rejected)"
-            raise ValueError(f"expert data key {k!r} must have dtype {want}, got dtype {a.dtype}")
+        a = real_array(f"expert data key {k!r}", v, allowed)
         if a.ndim != rank:
             want = "[steps, envs, dim]" if rank == 3 else "[steps, envs]"
             raise ValueError(f"expert data key {k!r} must have rank {rank} {want}, got shape {a.shape}")

@@ -35,6 +35,8 @@ from kinetix.environment.env_state import EnvParams, StaticEnvParams
 from kinetix.environment.spaces import ActionType, ObservationType
 from kinetix.util.saving import load_from_json_file
 
+from softrtc.reference._validate import real_array
+
 from .limits import BATCH_MAX, NUM_ENVS_MAX, NUM_STEPS_MAX, REPEATS_MAX
 
 # [K-1] the benchmark's level set, in the order the public release lists it.
@@ -122,14 +124,10 @@ def _check_action(name: str, action: Any, shape: tuple[int, ...]) -> jax.Array:
     # Only static properties are checked: values are traced under jit.
     a_shape = getattr(action, "shape", None)
     if a_shape is None:
-        if action is None or isinstance(action, (str, bytes)):
-            raise ValueError(f"{name} must be a floating-point array of shape {shape}, got {type(action).__name__}")
         try:
-            host = np.asarray(action)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{name} must be a floating-point array of shape {shape}: {e}") from e
-        if host.dtype.kind != "f":
-            raise ValueError(f"{name} must be a floating-point array of shape {shape}, got dtype {host.dtype}")
+            host = real_array(name, action, "f")
+        except ValueError as e:
+            raise ValueError(f"{e} (expected a floating-point array of shape {shape})") from None
         action = jnp.asarray(host)
         a_shape = action.shape
     if tuple(a_shape) != shape:

@@ -21,6 +21,7 @@ import flax.nnx as nnx
 import jax
 import numpy as np
 
+from softrtc._files import check_out_dir
 from softrtc.jax import checkpoint as jckpt
 from softrtc.jax.delays import MAX_DELAY
 from softrtc.jax.policy import FlowPolicy, PolicyConfig, load_pure_dict
@@ -171,19 +172,6 @@ def load_level_policy(policy_dir: str | os.PathLike, level: str) -> FlowPolicy:
     return load_bc_policy(path)
 
 
-def _check_out_dir(out: Path, name: str) -> None:
-    """``out`` must be a folder, or creatable as one, and ``out/name`` not a folder ([N-11])."""
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out_dir must be a directory (or a path to create), but {out} is a file")
-    anc = out
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
-    if anc.exists() and not anc.is_dir():
-        raise ValueError(f"out_dir {out} cannot be created: {anc} is a file")
-    if (out / name).is_dir():
-        raise ValueError(f"out_dir must not hold a directory named {name}: {out / name}")
-
-
 def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level: str, method: str,
                    out_dir: str | os.PathLike, *, window: ref_weights.SoftWindow | None = None,
                    execute_horizon: int = 4, d_max: int = 4, delay_dist: str = "uniform",
@@ -213,9 +201,7 @@ def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level
                               ("execute_horizon", execute_horizon, 1, MAX_DELAY)):
         if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or not lo <= val <= hi:
             raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {val!r}")
-    if not isinstance(out_dir, (str, os.PathLike)):
-        raise ValueError(f"out_dir must be a directory path, got {type(out_dir).__name__}")
-    _check_out_dir(Path(out_dir), f"{level}.npz")
+    check_out_dir("out_dir", out_dir, (f"{level}.npz",))
     data_path = _check_dir("data_dir", data_dir) / kdata.expert_data_filename(level)
     bc_path = find_bc_file(bc_dir, level)
     if not data_path.is_file():

@@ -42,6 +42,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
+from softrtc._files import check_out_dir
+from softrtc.reference._validate import real_array
 from softrtc.jax import methods as jmethods
 from softrtc.jax.guidance import guided_sample_conditioned
 from softrtc.jax.policy import FlowPolicy, PolicyConfig
@@ -401,13 +403,11 @@ class Rollout:
                              f"got {keys.dtype} {tuple(keys.shape)}")
         hi = min(self.s, self.H - self.s)
         want = f"delays must be an integer array of shape ({self.num_envs},) with entries in [0, {hi}] ([X-1])"
-        if delays is None or isinstance(delays, (str, bytes)):
-            raise ValueError(f"{want}, got {type(delays).__name__}")
         try:
-            ds = np.asarray(delays)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"{want}: {e}") from e
-        if ds.shape != (self.num_envs,) or ds.dtype.kind not in "iu":
+            ds = real_array("delays", delays, "iu")
+        except ValueError as e:
+            raise ValueError(f"{want}: {e}") from None
+        if ds.shape != (self.num_envs,):
             raise ValueError(f"{want}, got dtype {ds.dtype} shape {ds.shape}")
         if ds.min() < 0 or ds.max() > hi:
             raise ValueError(f"{want}, got {np.ravel(ds).tolist()[:8]}")
@@ -497,15 +497,7 @@ def episode_metrics(actions: np.ndarray, length: int) -> dict:
     ``nan`` when the episode is too short for the difference ([M-1] needs
     N > k); such episodes are left out of that metric's means ([KE-7]).
     """
-    if actions is None or isinstance(actions, (str, bytes)):
-        raise ValueError(f"actions must be a real array of shape [N, A], got {type(actions).__name__}")
-    try:
-        a = np.asarray(actions)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"actions must be a real array of shape [N, A]: {e}") from e
-    if a.dtype.kind not in "iuf":
-        raise ValueError(f"actions must have a real numeric dtype (integer or float), got {a.dtype}")
-    a = a.astype(np.float64)
+    a = real_array("actions", actions).astype(np.float64)
     if a.ndim != 2 or 0 in a.shape:
         raise ValueError(f"actions must have shape [N >= 1, A >= 1], got {list(a.shape)}")
     length = _check_int("length", length, 1, a.shape[0])
@@ -831,19 +823,7 @@ def write_results(result: Mapping, out_dir: str | os.PathLike, *, bootstrap_resa
     """Write ``episodes.csv``, ``per_level.csv``, ``pooled.csv`` and ``table.md`` ([KE-8]); returns the paths."""
     if not isinstance(result, Mapping) or "episodes" not in result:
         raise ValueError("result must be the dict returned by evaluate()")
-    if not isinstance(out_dir, (str, os.PathLike)):
-        raise ValueError(f"out_dir must be a path, got {type(out_dir).__name__}")
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out_dir must be a directory (or a path to create), but {out} is a file")
-    anc = out
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
-    if anc.exists() and not anc.is_dir():
-        raise ValueError(f"out_dir {out} cannot be created: {anc} is a file")
-    for name in ("episodes.csv", "per_level.csv", "pooled.csv", "table.md"):
-        if (out / name).is_dir():
-            raise ValueError(f"out_dir must not hold a directory named {name}: {out / name}")
+    out = check_out_dir("out_dir", out_dir, ("episodes.csv", "per_level.csv", "pooled.csv", "table.md"))
     # Rows are checked and summarized before anything is created.
     summary = summarize(result["episodes"], bootstrap_resamples=bootstrap_resamples, bootstrap_seed=bootstrap_seed)
     out.mkdir(parents=True, exist_ok=True)

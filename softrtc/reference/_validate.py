@@ -65,6 +65,26 @@ def check_choice(name: str, value, choices) -> str:
     return value
 
 
+def real_array(name: str, value, kinds: str = "iuf") -> np.ndarray:
+    """``value`` as a NumPy array whose dtype kind is one of ``kinds`` (default integer or float) ([N-7]).
+
+    Not cast, and shape, range and finiteness are left to the caller. None,
+    strings, ragged lists, and booleans, complex numbers or strings in an
+    array (which NumPy would convert, or drop an imaginary part of) raise
+    ValueError naming ``name``.
+    """
+    want = "a real numeric array (integer or float)" if kinds == "iuf" else f"an array of dtype kind {kinds!r}"
+    if value is None or isinstance(value, (str, bytes)):
+        raise ValueError(f"{name} must be {want}, got {type(value).__name__}")
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"{name} must be {want}, got a ragged or non-numeric {type(value).__name__}") from exc
+    if raw.dtype.kind not in kinds:
+        raise ValueError(f"{name} must be {want}, got dtype {raw.dtype}")
+    return raw
+
+
 def check_array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
                 lo: float | None = None, hi: float | None = None, allow_empty: bool = False) -> np.ndarray:
     """Return ``value`` as a finite float64 array of the given shape ([N-7], [N-8]).
@@ -72,14 +92,7 @@ def check_array(name: str, value, shape: tuple | None = None, ndim: int | None =
     ``shape`` may contain ``None`` for a free dimension. An axis of length 0 is
     rejected unless ``allow_empty`` ([N-1]: H >= 1, A >= 1).
     """
-    try:
-        raw = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
-    # Booleans, strings, complex and object arrays would convert (or drop an imaginary part) silently.
-    if raw.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must be a real numeric array (integer or float), got dtype {raw.dtype}")
-    arr = raw.astype(np.float64)
+    arr = real_array(name, value).astype(np.float64)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
     if shape is not None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_bool, check_int, check_real
+from ._validate import check_array, check_bool, check_int, check_real, real_array
 from .weights import check_weights
 
 
@@ -39,14 +39,8 @@ def blend_time(t: float, weights) -> np.ndarray:
 
 def field_output(name: str, value, shape: tuple) -> np.ndarray:
     """A velocity (or VJP) returned by a field: shape of the state, finite ([N-7])."""
-    try:
-        raw = np.asarray(value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must return a numeric array, got {type(value).__name__}") from exc
     # [N-7] As for inputs: a complex, boolean or string result is an error, not converted.
-    if raw.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must return a real numeric array (integer or float), got dtype {raw.dtype}")
-    v = raw.astype(np.float64)
+    v = real_array(f"the result of {name}", value).astype(np.float64)
     if v.shape != tuple(shape):
         raise ValueError(f"{name} must return an array of the state's shape {list(shape)}, got {list(v.shape)}")
     if not np.all(np.isfinite(v)):

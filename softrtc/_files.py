@@ -1,0 +1,56 @@
+"""Output files and folders shared by every writer of the package ([N-7], [N-11]).
+
+Standard library only. ``check_out_dir`` is the one up-front check of a
+folder a function will write into; ``write_atomic`` writes a file whole or
+not at all (temporary file in the same folder, then rename).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, IO
+
+
+def check_out_dir(name: str, value, files: tuple = ()) -> Path:
+    """``value`` as a Path to a folder that exists or can be created, under a writable folder, holding no
+    folder named like one of ``files`` (the files the caller will write). Raises ValueError naming ``name``."""
+    if not isinstance(value, (str, os.PathLike)) or not isinstance(os.fspath(value), str) or not os.fspath(value):
+        raise ValueError(f"{name} must be a non-empty str or PathLike folder path, got {value!r}")
+    out = Path(value)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{name} must be a directory (or a path to create), but {out} is a file")
+    probe = out.absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ValueError(f"{name} {out} cannot be created: {probe} is a file")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"{name} {out} cannot be created: {probe} is not writable")
+    for f in files:
+        if (out / f).is_dir():
+            raise ValueError(f"{name} must not hold a directory named {f}: {out / f}")
+    return out
+
+
+def write_atomic(path, write: Callable[[IO], None], *, binary: bool = False, prefix: str = ".softrtc-") -> None:
+    """Call ``write(f)`` on a temporary file next to ``path``, then rename it to ``path``.
+
+    A failure (or an interrupt) leaves an existing ``path`` untouched and no
+    temporary file behind. The new file gets the mode any new file has under
+    the umask (``mkstemp`` would leave it owner-only).
+    """
+    parent = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=parent)
+    try:
+        with os.fdopen(fd, "wb" if binary else "w") as f:
+            write(f)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
