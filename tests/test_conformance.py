@@ -202,6 +202,41 @@ def test_reports_written(tmp_path):
     assert root.find("testsuite/testcase/properties/property").get("name") == "requirements"
 
 
+def test_reports_are_written_whole_or_not_at_all(vector_files, tmp_path, monkeypatch):
+    """[CF-15] A report that fails while being written leaves the previous file as it was and no
+    temporary file behind; one that succeeds replaces it."""
+    res = runner.run(ReferenceAdapter(), files=vector_files, only={"endpoint"})
+    junit = tmp_path / "j.xml"
+    junit.write_text("old")
+    real_write = ET.ElementTree.write
+
+    def half_then_fail(self, f, *a, **k):
+        f.write(b"<testsuites")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ET.ElementTree, "write", half_then_fail)
+    with pytest.raises(OSError):
+        runner.write_junit(res, junit)
+    assert junit.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["j.xml"]
+    monkeypatch.setattr(ET.ElementTree, "write", real_write)
+    runner.write_junit(res, junit)
+    assert ET.parse(junit).getroot().get("tests") == str(len(res.cases))
+
+
+def test_citation_names_this_version():
+    """[CF-2] CITATION.cff cites the version pyproject.toml builds, and the README's conformance claim
+    names the format and spec versions the vectors carry."""
+    import re
+    cff = (ROOT / "CITATION.cff").read_text()
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    version = re.search(r'^version = "([^"]+)"', pyproject, re.M).group(1)
+    assert re.search(r'^version: "([^"]+)"', cff, re.M).group(1) == version
+    assert re.search(r"^license: (\S+)", cff, re.M).group(1) in pyproject
+    claim = f"passes softrtc conformance vectors format {FORMAT_VERSION}, spec {SPEC_VERSION}"
+    assert claim in (ROOT / "README.md").read_text()
+    assert claim in (ROOT / "spec" / "40-conformance.md").read_text().replace("\n", " ")
+
+
 def test_vectors_validate_against_schema():
     """[CF-22], [CF-2], [CF-6] Every vector file validates against spec/vectors.schema.json and
     index.json holds each file's sha256."""

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .._cli_util import command_error, comma_list, input_dir, output_file
+from .._files import write_atomic
 from . import FORMAT_VERSION
 from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, _describe, _fatal,
                       load_adapter, supported_functions)
@@ -575,7 +576,7 @@ def write_junit(res: RunResult, path) -> None:
         elif c.status == "unsupported":
             s.set("skipped", str(int(s.get("skipped")) + 1))
             ET.SubElement(tc, "skipped", message=c.message)
-    ET.ElementTree(root).write(path, encoding="utf-8", xml_declaration=True)
+    write_atomic(path, lambda f: ET.ElementTree(root).write(f, encoding="utf-8", xml_declaration=True), binary=True)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -611,7 +612,8 @@ def run_from_args(args) -> int:
             if out:
                 Path(out).parent.mkdir(parents=True, exist_ok=True)
         if args.report:
-            Path(args.report).write_text(json.dumps(report_dict(res), indent=1, sort_keys=True) + "\n")
+            text = json.dumps(report_dict(res), indent=1, sort_keys=True) + "\n"
+            write_atomic(args.report, lambda f: f.write(text))
         if args.junit:
             write_junit(res, args.junit)
     except OSError as exc:
