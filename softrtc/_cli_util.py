@@ -18,9 +18,10 @@ import math
 import os
 import re
 import sys
-import tempfile
 from pathlib import Path
 from typing import Callable
+
+from ._files import unwritable_reason
 
 
 def _range(lo, hi) -> str:
@@ -93,26 +94,11 @@ def comma_list(what: str, item: Callable[[str], object] = str, *, unique: bool =
     return parse
 
 
-def _first_existing(path: Path) -> Path:
-    p = path.absolute()
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    return p
-
-
 def _writable(text: str, folder: Path) -> str:
-    """``text`` when ``folder``, or its nearest existing ancestor (the command creates the rest), is writable."""
-    base = _first_existing(folder)
-    if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} is not a writable directory")
-    # os.access trusts permission bits (and root passes them everywhere, /proc included); creating a
-    # scratch file is the test that holds on every file system.
-    try:
-        with tempfile.TemporaryFile(dir=base):
-            pass
-    except OSError as exc:
-        raise argparse.ArgumentTypeError(f"{text} cannot be written: {base} does not take new files "
-                                         f"({exc.strerror or exc})") from None
+    """``text`` when ``folder``, or its nearest existing ancestor (the command creates the rest), takes new files."""
+    reason = unwritable_reason(folder)
+    if reason:
+        raise argparse.ArgumentTypeError(f"{text} {reason}")
     return text
 
 

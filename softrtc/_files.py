@@ -21,17 +21,35 @@ def check_out_dir(name: str, value, files: tuple = ()) -> Path:
     out = Path(value)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{name} must be a directory (or a path to create), but {out} is a file")
-    probe = out.absolute()
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    if not probe.is_dir():
-        raise ValueError(f"{name} {out} cannot be created: {probe} is a file")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise ValueError(f"{name} {out} cannot be created: {probe} is not writable")
+    reason = unwritable_reason(out)
+    if reason:
+        raise ValueError(f"{name} {out} {reason}")
     for f in files:
         if (out / f).is_dir():
             raise ValueError(f"{name} must not hold a directory named {f}: {out / f}")
     return out
+
+
+def unwritable_reason(folder) -> str | None:
+    """None when ``folder``, or its nearest existing ancestor (the rest is created), takes new files; else why not,
+    as the end of a sentence that starts with the folder's name ("cannot be written: /x is a file").
+
+    ``os.access`` trusts permission bits (and root passes them everywhere, a
+    read-only mount included), so the check creates and removes a scratch file.
+    """
+    base = Path(folder).absolute()
+    while not base.exists() and base != base.parent:
+        base = base.parent
+    if not base.is_dir():
+        return f"cannot be created: {base} is a file"
+    if not os.access(base, os.W_OK | os.X_OK):
+        return f"cannot be written: {base} is not a writable directory"
+    try:
+        with tempfile.TemporaryFile(dir=base):
+            pass
+    except OSError as exc:
+        return f"cannot be written: {base} does not take new files ({exc.strerror or exc})"
+    return None
 
 
 def write_atomic(path, write: Callable[[IO], None], *, binary: bool = False, prefix: str = ".softrtc-") -> None:

@@ -244,6 +244,10 @@ def test_shared_output_helpers(tmp_path):
         with pytest.raises(ValueError, match="out") as info:
             check_out_dir("out", bad, ("t.md",))
         assert word in str(info.value), info.value
+    if Path("/proc").is_dir():  # permission bits may allow writing (root); the scratch file shows it does not
+        with pytest.raises(ValueError, match="out /proc/softrtc-out cannot be written: /proc"):
+            check_out_dir("out", "/proc/softrtc-out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "o"]  # no scratch file left behind
 
     def broken(fh):
         fh.write("partial")
