@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import sampling, training, weights
+from . import delays, executor, field, metrics, sampling, training, weights
 from .field import VelocityField
 
 
@@ -25,6 +25,7 @@ class TorchAdapter:
     time_convention = "data_at_1"
     to_numpy = staticmethod(to_numpy)
 
+    # chapters E and W
     def endpoint(self, rule, d):
         return weights.endpoint(rule, d)
 
@@ -37,11 +38,18 @@ class TorchAdapter:
     def hard_weights(self, H, d):
         return weights.hard_weights(H, d)
 
-    def guidance_weights(self, H, s, d, variant):
-        return weights.guidance_weights(H, s, d, variant)
+    # chapters D, C and L
+    def delay_probs(self, dist, d_min, d_max, decay):
+        return delays.delay_probs(dist, d_min, d_max, decay)
+
+    def sample_delay(self, probs, d_min, u):
+        return delays.sample_delay(probs, d_min, u)
 
     def corrupt(self, actions, noise, w, tau):
         return training.corrupt(actions, noise, w, tau)
+
+    def token_times(self, w, t):
+        return training.token_times(w, t)
 
     def loss(self, pred, actions, noise, w):
         return training.loss(pred, actions, noise, w)
@@ -49,22 +57,55 @@ class TorchAdapter:
     def batch_loss(self, preds, actions, noise, w):
         return training.batch_loss(preds, actions, noise, w)
 
-    def velocity(self, field, obs, x, t):
-        f = VelocityField(field)
-        return f(torch.as_tensor(obs, dtype=torch.float32), torch.as_tensor(x, dtype=torch.float32),
-                 torch.as_tensor(t, dtype=torch.float32))
+    # chapters F, S and G
+    def velocity(self, params, obs, x, t):
+        return field.velocity(VelocityField(params), obs, x, t)
 
-    def naive_sample(self, field, obs, noise, T):
-        return sampling.naive_sample(VelocityField(field), obs, noise, T)
+    def velocity_vjp(self, params, obs, x, t, cotangent):
+        return field.velocity_vjp(VelocityField(params), obs, x, t, cotangent)
 
-    def rtc_sample(self, field, obs, noise, prior, w, T):
-        return sampling.rtc_sample(VelocityField(field), obs, noise, prior, w, T)
+    def naive_sample(self, params, obs, noise, T):
+        return sampling.naive_sample(VelocityField(params), obs, noise, T)
 
-    def guided_sample(self, field, obs, noise, prior, w, T, max_guidance):
-        return sampling.guided_sample(VelocityField(field), obs, noise, prior, w, T, max_guidance)
+    def rtc_sample(self, params, obs, noise, prior, w, T):
+        return sampling.rtc_sample(VelocityField(params), obs, noise, prior, w, T)
+
+    def guided_sample(self, params, obs, noise, prior, w, T, max_guidance):
+        return sampling.guided_sample(VelocityField(params), obs, noise, prior, w, T, max_guidance)
+
+    def method_weights(self, method, H, s, d, window):
+        return weights.method_weights(method, H, s, d, window)
+
+    def guidance_weights(self, H, s, d, variant):
+        return weights.guidance_weights(H, s, d, variant)
 
     def guidance_weight(self, t, max_guidance):
         return sampling.guidance_weight(t, max_guidance)
+
+    # chapters X and M
+    def shift_prior(self, prev, s):
+        return executor.shift_prior(prev, s)
+
+    def execute_chunks(self, chunks, delays_, s):
+        return executor.execute_chunks(chunks, delays_, s)
+
+    def difference_norm(self, actions, order):
+        return metrics.difference_norm(actions, order)
+
+    def action_delta(self, actions):
+        return metrics.action_delta(actions)
+
+    def action_jerk(self, actions):
+        return metrics.action_jerk(actions)
+
+    def boundary_jump(self, actions, chunk_index):
+        return metrics.boundary_jump(actions, chunk_index)
+
+    def bootstrap_interval(self, values, indices, confidence):
+        return metrics.bootstrap_interval(values, indices, confidence)
+
+    def standard_error(self, values):
+        return metrics.standard_error(values)
 
 
 ADAPTER = TorchAdapter()

@@ -1,18 +1,22 @@
 """Conformance adapter of the PyTorch port in the flipped convention (noise at t' = 1) ([CF-10], [V-1]).
 
 The runner hands this adapter flipped times (t' = 1 - t) and negated
-velocities (u = -v) and maps its outputs back before comparing.
+velocities (u = -v) and maps its outputs back before comparing. Functions
+without a flow time or a velocity (delays, executor, metrics, weights) are the
+spec-time adapter's.
 
     softrtc conformance run --impl torch-flipped
 """
 
 from __future__ import annotations
 
-import torch
-
-from . import flipped
+from . import field, flipped
 from .adapter import TorchAdapter
 from .field import VelocityField
+
+
+def _ufield(params):
+    return flipped.FlippedField(VelocityField(params))
 
 
 class FlippedTorchAdapter(TorchAdapter):
@@ -28,22 +32,24 @@ class FlippedTorchAdapter(TorchAdapter):
     def loss(self, pred_u, actions, noise, w):
         return flipped.loss(pred_u, actions, noise, w)
 
-    batch_loss = None  # not ported in this convention: its cases are reported as unsupported
+    def batch_loss(self, preds_u, actions, noise, w):
+        return flipped.batch_loss(preds_u, actions, noise, w)
 
-    def velocity(self, field, obs, x, t_flipped):
-        u = flipped.FlippedField(VelocityField(field))
-        return u(torch.as_tensor(obs, dtype=torch.float32), torch.as_tensor(x, dtype=torch.float32),
-                 torch.as_tensor(t_flipped, dtype=torch.float32))
+    def velocity(self, params, obs, x, t_flipped):
+        return field.velocity(_ufield(params), obs, x, t_flipped)
 
-    def naive_sample(self, field, obs, noise, T):
-        return flipped.naive_sample(flipped.FlippedField(VelocityField(field)), obs, noise, T)
+    def velocity_vjp(self, params, obs, x, t_flipped, cotangent):
+        # (du/dx)^T g = -(dv/dx)^T g; the runner negates it back ([CF-10])
+        return field.velocity_vjp(_ufield(params), obs, x, t_flipped, cotangent)
 
-    def rtc_sample(self, field, obs, noise, prior, w, T):
-        return flipped.rtc_sample(flipped.FlippedField(VelocityField(field)), obs, noise, prior, w, T)
+    def naive_sample(self, params, obs, noise, T):
+        return flipped.naive_sample(_ufield(params), obs, noise, T)
 
-    def guided_sample(self, field, obs, noise, prior, w, T, max_guidance):
-        return flipped.guided_sample(flipped.FlippedField(VelocityField(field)), obs, noise, prior, w, T,
-                                     max_guidance)
+    def rtc_sample(self, params, obs, noise, prior, w, T):
+        return flipped.rtc_sample(_ufield(params), obs, noise, prior, w, T)
+
+    def guided_sample(self, params, obs, noise, prior, w, T, max_guidance):
+        return flipped.guided_sample(_ufield(params), obs, noise, prior, w, T, max_guidance)
 
     def guidance_weight(self, t_flipped, max_guidance):
         return flipped.guidance_weight(t_flipped, max_guidance)

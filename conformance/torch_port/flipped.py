@@ -12,6 +12,7 @@ import math
 
 import torch
 
+from . import training
 from .checks import real, tensor
 from .sampling import _inputs
 
@@ -26,7 +27,7 @@ class FlippedField:
     """
 
     def __init__(self, field):
-        self.field, self.H, self.A = field, field.H, field.A
+        self.field, self.H, self.A, self.O = field, field.H, field.A, field.O
 
     def __call__(self, obs, x, t_flipped):
         return -self.field(obs, x, 1.0 - t_flipped)
@@ -55,6 +56,11 @@ def loss(pred_u, actions, noise, weights) -> torch.Tensor:
     w = tensor("weights", weights, shape=(p.shape[0],), lo=0.0, hi=1.0)
     m = 1.0 - w
     return (m * ((p - (n - a)) ** 2).sum(dim=-1)).sum() / (m.sum() + ETA)
+
+
+def batch_loss(preds_u, actions, noise, weights) -> torch.Tensor:
+    """Unweighted mean over the batch of the flipped per-example losses ([L-3])."""
+    return training.batch_loss(preds_u, actions, noise, weights, example_loss=loss)
 
 
 def _times(T: int):

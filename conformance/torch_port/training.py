@@ -1,4 +1,4 @@
-"""Weighted corruption and loss (spec chapters C and L), data at t = 1."""
+"""Per-token flow times, weighted corruption and loss (spec chapters C and L), data at t = 1."""
 
 from __future__ import annotations
 
@@ -7,6 +7,12 @@ import torch
 from .checks import real, tensor
 
 ETA = 1e-8
+
+
+def token_times(weights, t: float) -> torch.Tensor:
+    """t_j = w_j + (1 - w_j) t: a clamped token (w_j = 1) is clean ([C-1], [S-3])."""
+    w = tensor("weights", weights, ndim=1, lo=0.0, hi=1.0)
+    return w + (1.0 - w) * real("t", t, 0.0, 1.0)
 
 
 def corrupt(actions, noise, weights, tau: float):
@@ -30,12 +36,12 @@ def loss(pred, actions, noise, weights) -> torch.Tensor:
     return (m * per_token).sum() / (m.sum() + ETA)  # eta keeps an all-clamped chunk at 0, not 0/0
 
 
-def batch_loss(preds, actions, noise, weights) -> torch.Tensor:
-    """Unweighted mean of per-example losses ([L-3])."""
+def batch_loss(preds, actions, noise, weights, example_loss=loss) -> torch.Tensor:
+    """Unweighted mean of per-example losses ([L-3]); weights [B, H], one vector per example."""
     p = tensor("preds", preds, ndim=3)
     if p.shape[0] == 0:
         raise ValueError("preds must have batch size >= 1")
     a = tensor("actions", actions, shape=tuple(p.shape))
     n = tensor("noise", noise, shape=tuple(p.shape))
     w = tensor("weights", weights, shape=tuple(p.shape[:2]), lo=0.0, hi=1.0)
-    return torch.stack([loss(p[i], a[i], n[i], w[i]) for i in range(p.shape[0])]).mean()
+    return torch.stack([example_loss(p[i], a[i], n[i], w[i]) for i in range(p.shape[0])]).mean()

@@ -1,4 +1,5 @@
-"""Endpoint rules and token weights (spec chapters E and W), plus the guidance weights of [G-1].
+"""Endpoint rules and token weights (spec chapters E and W), the guidance weights of [G-1] and the
+weights of each method ([S-6]).
 
 Rules and windows are plain dicts, the same shape the conformance vectors use:
 rule = {"kind": "delay_scaled", "lam": 2.0, "h_max": 5} (or offset with "length" = L,
@@ -71,20 +72,28 @@ def prefix_weights(H: int, d: int, e: int, schedule: str = "linear", parametriza
     return w
 
 
-def soft_weights(H: int, d: int, window: dict, s=None) -> torch.Tensor:
-    """Soft RTC weights ([W-2], [W-6], [W-7])."""
-    H = integer("H", H, 1, MAX_WINDOW)
-    d = integer("d", d, 0, H)
+def check_window(H: int, window: dict) -> tuple:
+    """A window dict checked whole: its rule ([E-1]), schedule, parametrization, overflow, and an
+    endpoint bound (h_max, or h of "fixed") of at most H. Returns (rule, schedule, parametrization, overflow)."""
     if not isinstance(window, dict) or "rule" not in window:
         raise ValueError("window must be a dict with keys rule, schedule, parametrization, overflow")
     rule = window["rule"]
     schedule = choice("schedule", window.get("schedule", "linear"), SCHEDULES)
     par = choice("parametrization", window.get("parametrization", "rtc"), ("rtc", "paper"))
     overflow = choice("overflow", window.get("overflow", "clip"), ("clip", "zeros"))
-    kind = rule.get("kind") if isinstance(rule, dict) else None
-    bound = rule.get("h_max") if kind in ("delay_scaled", "offset") else rule.get("length") if kind == "fixed" else 0
-    if isinstance(bound, int) and bound > H:
+    endpoint(rule, 0)  # validates the rule's parameters, whatever the delay
+    kind = rule["kind"]
+    bound = rule["h_max"] if kind in ("delay_scaled", "offset") else rule["length"] if kind == "fixed" else 0
+    if bound > H:
         raise ValueError(f"window endpoint bound (h_max or h) must be <= H={H}, got {bound}")
+    return rule, schedule, par, overflow
+
+
+def soft_weights(H: int, d: int, window: dict, s=None) -> torch.Tensor:
+    """Soft RTC weights ([W-2], [W-6], [W-7])."""
+    H = integer("H", H, 1, MAX_WINDOW)
+    d = integer("d", d, 0, H)
+    rule, schedule, par, overflow = check_window(H, window)
     e = endpoint(rule, d)
     e_star = max(min(e, H), d)  # [W-2]: the committed prefix stays clamped when e < d
     if s is not None:
@@ -110,3 +119,31 @@ def guidance_weights(H: int, s: int, d: int, variant: str) -> torch.Tensor:
     d = integer("d", d, 0, H - s)
     sched = {"hard": "zeros", "soft": "exp"}[choice("variant", variant, ("hard", "soft"))]
     return prefix_weights(H, d, H - s, sched, "rtc")
+
+
+METHODS = ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft")
+# The default window of [W-7]: the paper's rule and schedule with this spec's rtc and clip.
+DEFAULT_WINDOW = {"rule": {"kind": "delay_scaled", "lam": 2.0, "h_max": 5}, "schedule": "linear",
+                  "parametrization": "rtc", "overflow": "clip"}
+
+
+def method_weights(method: str, H: int, s: int, d: int, window=None) -> torch.Tensor:
+    """Token weights of a method for delay d ([S-6]); the request is checked whole ([S-8]).
+
+    d must be executable, 0 <= d <= min(s, H - s) ([X-1]), for every method; a
+    given window is checked for every method, the default one is resolved by
+    train_soft only.
+    """
+    choice("method", method, METHODS)
+    H = integer("H", H, 1, MAX_WINDOW)
+    s = integer("s", s, 1, H)
+    d = integer("d", d, 0, min(s, H - s))
+    if window is not None:
+        check_window(H, window)
+    if method == "naive":
+        return torch.zeros(H, dtype=DTYPE)
+    if method in ("inference_hard", "inference_soft"):
+        return guidance_weights(H, s, d, method.removeprefix("inference_"))
+    if method == "train_hard":
+        return hard_weights(H, d)
+    return soft_weights(H, d, DEFAULT_WINDOW if window is None else window, s)
