@@ -158,12 +158,25 @@ def test_flipped_time_mapping():
 
 
 def test_naming_and_batch_conventions():
-    """V-4, V-5: execution_horizon = s, inference_delay = d, prefix horizon = H - s; batches per example."""
+    """V-4, V-5, G-1, W-4: inference_delay = d; the window end (prefix_attention_horizon, and LeRobot's
+    execution_horizon) is e, H - s for the guidance weights; execute horizon s; batches per example."""
     from softrtc.reference.guidance import guidance_prefix_weights
-    H, execution_horizon, inference_delay = 8, 4, 2
-    prefix_attention_horizon = H - execution_horizon
-    w = guidance_prefix_weights(H, execution_horizon, inference_delay, "hard")
+    from softrtc.reference.weights import prefix_weights
+    H, s, inference_delay = 8, 4, 2
+    prefix_attention_horizon = H - s
+    w = guidance_prefix_weights(H, s, inference_delay, "hard")
     assert w.sum() == inference_delay and w[prefix_attention_horizon:].sum() == 0
+    # A chunk of 50 with window end E = 10 (the end, not the 40 actions executed): 1 on the prefix,
+    # (E - j) / (E - d + 1) on the window, 0 after it.
+    H, s, d = 50, 40, 5
+    E = H - s
+    w = prefix_weights(H, d, E, "linear", "rtc")
+    np.testing.assert_allclose(w[:d], 1.0)
+    np.testing.assert_allclose(w[d:E], (E - np.arange(d, E)) / (E - d + 1))
+    assert not w[E:].any()
+    np.testing.assert_array_equal(guidance_prefix_weights(H, s, d, "soft"), prefix_weights(H, d, E, "exp", "rtc"))
+    # Reading the execute horizon s as the window end guides a different window.
+    assert not np.array_equal(prefix_weights(H, d, s, "exp", "rtc"), guidance_prefix_weights(H, s, d, "soft"))
     from softrtc.reference.loss import batch_loss, flow_matching_loss
     rng = np.random.default_rng(0)
     p, a, n = rng.standard_normal((3, 2, 4, 1))
