@@ -101,6 +101,9 @@ def test_schedules():
     assert W.schedule_value("exp", np.array([0.0]))[0] == 1.0  # exactly: expm1 in numerator and denominator
     for name in W.SCHEDULES:
         assert np.all(np.diff(W.schedule_value(name, x)) <= 0)
+    # Every schedule acts on the window only: `ones` is 1 before the end and 0 from it on.
+    for par in W.PARAMETRIZATIONS:
+        np.testing.assert_array_equal(W.prefix_weights(10, 2, 6, "ones", par), [1] * 6 + [0] * 4)
 
 
 def test_parametrizations_worked_example():
