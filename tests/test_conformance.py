@@ -242,6 +242,44 @@ def test_citation_names_this_version():
     assert claim in (ROOT / "spec" / "40-conformance.md").read_text().replace("\n", " ")
 
 
+def test_vector_directory_checked_against_its_index(tmp_path):
+    """[CF-25], [CF-16], [CF-2] A directory with index.json is checked against it before any case runs: an
+    edited file (even one digit), a missing or an unlisted file, or a wrong case count stop the run with
+    status 2 naming the file; without index.json the same files are read as a hand-made set."""
+    import shutil
+
+    from softrtc.conformance.runner import VectorError, load_vectors
+
+    d = tmp_path / "v"
+    shutil.copytree(VECTORS, d)
+    assert len(load_vectors(d)) == len(load_vectors())  # an intact copy loads
+    loss = d / "loss.json"
+    text = loss.read_text()
+    i = text.index('"rel":') + len('"rel":')
+    loss.write_text(text[:i] + text[i:].replace("1", "2", 1))  # one digit of one tolerance
+    with pytest.raises(VectorError, match=r"loss\.json: SHA-256 .* differs from index\.json"):
+        load_vectors(d)
+    r = _cli("run", "--impl", "reference", "--vectors", str(d))
+    assert r.returncode == 2 and "loss.json" in r.stderr and "SHA-256" in r.stderr, r.stderr
+    loss.write_text(text)
+    (d / "extra.json").write_text((d / "metrics.json").read_text())
+    with pytest.raises(VectorError, match="extra.json: not listed in index.json"):
+        load_vectors(d)
+    (d / "extra.json").unlink()
+    (d / "metrics.json").unlink()
+    with pytest.raises(VectorError, match="metrics.json: listed in index.json but missing"):
+        load_vectors(d)
+    shutil.copy(VECTORS / "metrics.json", d / "metrics.json")
+    index = json.loads((d / "index.json").read_text())
+    index["files"]["loss.json"]["cases"] += 1
+    (d / "index.json").write_text(json.dumps(index))
+    with pytest.raises(VectorError, match="loss.json: .* cases, index.json lists"):
+        load_vectors(d)
+    (d / "index.json").unlink()
+    loss.write_text(text[:i] + text[i:].replace("1", "2", 1))
+    assert len(load_vectors(d)) == len(load_vectors())  # no index: a hand-made set, read as it is
+
+
 def test_vectors_validate_against_schema():
     """[CF-22], [CF-2], [CF-6] Every vector file validates against spec/vectors.schema.json and
     index.json holds each file's sha256."""

@@ -13,6 +13,7 @@ exponent makes a float) and a malformed case stops the run with status 2 ([CF-24
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -131,6 +132,7 @@ def load_vectors(directory=None) -> list[dict]:
     files = sorted(p for p in d.glob("*.json") if p.name != "index.json")
     if not files:
         raise VectorError(f"vectors directory {d} holds no *.json vector files")
+    index = _read_index(d, files)
     out, seen = [], {}
     major = FORMAT_VERSION.split(".")[0]
     for p in files:
@@ -154,9 +156,44 @@ def load_vectors(directory=None) -> list[dict]:
             if case["id"] in seen:
                 raise VectorError(f"{p.name}: case {i}: id {case['id']!r} already used in {seen[case['id']]} ([CF-6])")
             seen[case["id"]] = p.name
+        if index is not None and len(data["cases"]) != index[p.name].get("cases"):
+            raise VectorError(f"{p.name}: {len(data['cases'])} cases, index.json lists {index[p.name].get('cases')} "
+                              "([CF-25])")
         data["_file"] = p.name
         out.append(data)
     return out
+
+
+def _read_index(d: Path, files: list) -> dict | None:
+    """The ``files`` entry of ``d/index.json`` after checking every vector file against it ([CF-25]), or None
+    when the directory has no index (a hand-made set of cases)."""
+    path = d / "index.json"
+    if not path.exists():
+        return None
+    try:
+        index = parse_json(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise VectorError(f"cannot read {path}: {exc}") from None
+    listed = index.get("files") if isinstance(index, dict) else None
+    if not isinstance(listed, dict) or not all(isinstance(v, dict) for v in listed.values()):
+        raise VectorError(f"{path}: expected an object with 'files': {{name: {{sha256, cases, ...}}}} ([CF-2])")
+    major = FORMAT_VERSION.split(".")[0]
+    if str(index.get("format_version", "")).split(".")[0] != major:
+        raise VectorError(f"{path}: format_version {index.get('format_version')!r} is not readable by this runner "
+                          f"(needs {major}.x)")
+    names = {p.name for p in files}
+    for name in sorted(set(listed) - names):
+        raise VectorError(f"{name}: listed in index.json but missing from {d} ([CF-25])")
+    for name in sorted(names - set(listed)):
+        raise VectorError(f"{name}: not listed in index.json; the vectors in {d} are not one generated set ([CF-25])")
+    for p in files:
+        digest = hashlib.sha256(p.read_bytes()).hexdigest()
+        if digest != listed[p.name].get("sha256"):
+            raise VectorError(f"{p.name}: SHA-256 {digest[:12]}... differs from index.json's "
+                              f"{str(listed[p.name].get('sha256'))[:12]}...: the file was changed after generation "
+                              "(regenerate with `softrtc conformance generate`, or run a hand-made set from a "
+                              "folder without index.json) ([CF-25])")
+    return listed
 
 
 def _check_case_shape(file: str, i: int, case, fields: dict) -> None:
