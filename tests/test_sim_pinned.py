@@ -163,7 +163,7 @@ def test_runtime_delays_switches_and_late_chunk_on_a_gated_timeline(monkeypatch)
     max(predicted, realized), switch at r + that, a chunk not back by r + min(s, H - s) rejected with -2,
     holds until a fresh request (no prior, d = 0) is back, and the delay given to the sampler is the one logged."""
     pytest.importorskip("pymunk")
-    s, dmax, window = 5, 5, 5
+    dmax, window = 5, 5
     wanted = {1: 3, 2: 1, 3: 2, 4: 6}  # request 4 comes back at 6 > dmax ticks: late
     rec, pol = _gated_episode(monkeypatch, lambda c: wanted.get(c, 2), 45)
     assert rec.fault is None and rec.steps == 45
