@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from . import delays, executor, field, metrics, sampling, training, weights
+from . import delays, executor, field, metrics, sampling, training
+from . import weights as weight_fns  # the name `weights` is an adapter function
 from .field import VelocityField
 
 
@@ -21,91 +22,61 @@ def to_numpy(x):
 
 
 class TorchAdapter:
+    """Every interface function of [CF-7]. Functions whose arguments the port takes as they are bind its
+    module functions directly; those of chapters F, S and G first build the field from its parameters."""
+
     name = "torch"
     time_convention = "data_at_1"
     to_numpy = staticmethod(to_numpy)
 
     # chapters E and W
-    def endpoint(self, rule, d):
-        return weights.endpoint(rule, d)
-
-    def prefix_weights(self, H, d, e, schedule, parametrization):
-        return weights.prefix_weights(H, d, e, schedule, parametrization)
-
-    def weights(self, H, d, window, s):
-        return weights.soft_weights(H, d, window, s)
-
-    def hard_weights(self, H, d):
-        return weights.hard_weights(H, d)
+    endpoint = staticmethod(weight_fns.endpoint)
+    prefix_weights = staticmethod(weight_fns.prefix_weights)
+    weights = staticmethod(weight_fns.soft_weights)
+    hard_weights = staticmethod(weight_fns.hard_weights)
+    method_weights = staticmethod(weight_fns.method_weights)
+    guidance_weights = staticmethod(weight_fns.guidance_weights)
 
     # chapters D, C and L
-    def delay_probs(self, dist, d_min, d_max, decay):
-        return delays.delay_probs(dist, d_min, d_max, decay)
+    delay_probs = staticmethod(delays.delay_probs)
+    sample_delay = staticmethod(delays.sample_delay)
+    corrupt = staticmethod(training.corrupt)
+    token_times = staticmethod(training.token_times)
+    loss = staticmethod(training.loss)
+    batch_loss = staticmethod(training.batch_loss)
 
-    def sample_delay(self, probs, d_min, u):
-        return delays.sample_delay(probs, d_min, u)
+    # chapters F, S and G: the field is built from the case's parameters; the flipped adapter
+    # swaps in its own field and samplers ([V-1])
+    guidance_weight = staticmethod(sampling.guidance_weight)
+    samplers = sampling
 
-    def corrupt(self, actions, noise, w, tau):
-        return training.corrupt(actions, noise, w, tau)
+    def make_field(self, params):
+        return VelocityField(params)
 
-    def token_times(self, w, t):
-        return training.token_times(w, t)
-
-    def loss(self, pred, actions, noise, w):
-        return training.loss(pred, actions, noise, w)
-
-    def batch_loss(self, preds, actions, noise, w):
-        return training.batch_loss(preds, actions, noise, w)
-
-    # chapters F, S and G
     def velocity(self, params, obs, x, t):
-        return field.velocity(VelocityField(params), obs, x, t)
+        return field.velocity(self.make_field(params), obs, x, t)
 
     def velocity_vjp(self, params, obs, x, t, cotangent):
-        return field.velocity_vjp(VelocityField(params), obs, x, t, cotangent)
+        return field.velocity_vjp(self.make_field(params), obs, x, t, cotangent)
 
     def naive_sample(self, params, obs, noise, T):
-        return sampling.naive_sample(VelocityField(params), obs, noise, T)
+        return self.samplers.naive_sample(self.make_field(params), obs, noise, T)
 
     def rtc_sample(self, params, obs, noise, prior, w, T):
-        return sampling.rtc_sample(VelocityField(params), obs, noise, prior, w, T)
+        return self.samplers.rtc_sample(self.make_field(params), obs, noise, prior, w, T)
 
     def guided_sample(self, params, obs, noise, prior, w, T, max_guidance):
-        return sampling.guided_sample(VelocityField(params), obs, noise, prior, w, T, max_guidance)
-
-    def method_weights(self, method, H, s, d, window):
-        return weights.method_weights(method, H, s, d, window)
-
-    def guidance_weights(self, H, s, d, variant):
-        return weights.guidance_weights(H, s, d, variant)
-
-    def guidance_weight(self, t, max_guidance):
-        return sampling.guidance_weight(t, max_guidance)
+        return self.samplers.guided_sample(self.make_field(params), obs, noise, prior, w, T, max_guidance)
 
     # chapters X and M
-    def shift_prior(self, prev, s):
-        return executor.shift_prior(prev, s)
-
-    def execute_chunks(self, chunks, delays_, s):
-        return executor.execute_chunks(chunks, delays_, s)
-
-    def difference_norm(self, actions, order):
-        return metrics.difference_norm(actions, order)
-
-    def action_delta(self, actions):
-        return metrics.action_delta(actions)
-
-    def action_jerk(self, actions):
-        return metrics.action_jerk(actions)
-
-    def boundary_jump(self, actions, chunk_index):
-        return metrics.boundary_jump(actions, chunk_index)
-
-    def bootstrap_interval(self, values, indices, confidence):
-        return metrics.bootstrap_interval(values, indices, confidence)
-
-    def standard_error(self, values):
-        return metrics.standard_error(values)
+    shift_prior = staticmethod(executor.shift_prior)
+    execute_chunks = staticmethod(executor.execute_chunks)
+    difference_norm = staticmethod(metrics.difference_norm)
+    action_delta = staticmethod(metrics.action_delta)
+    action_jerk = staticmethod(metrics.action_jerk)
+    boundary_jump = staticmethod(metrics.boundary_jump)
+    bootstrap_interval = staticmethod(metrics.bootstrap_interval)
+    standard_error = staticmethod(metrics.standard_error)
 
 
 ADAPTER = TorchAdapter()

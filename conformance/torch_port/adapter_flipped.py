@@ -10,49 +10,26 @@ spec-time adapter's.
 
 from __future__ import annotations
 
-from . import field, flipped
+from . import flipped
 from .adapter import TorchAdapter
 from .field import VelocityField
-
-
-def _ufield(params):
-    return flipped.FlippedField(VelocityField(params))
 
 
 class FlippedTorchAdapter(TorchAdapter):
     name = "torch-flipped"
     time_convention = "noise_at_1"
 
-    def corrupt(self, actions, noise, w, tau_flipped):
-        return flipped.corrupt(actions, noise, w, tau_flipped)
+    corrupt = staticmethod(flipped.corrupt)
+    token_times = staticmethod(flipped.token_times)
+    loss = staticmethod(flipped.loss)
+    batch_loss = staticmethod(flipped.batch_loss)
+    guidance_weight = staticmethod(flipped.guidance_weight)
+    samplers = flipped
 
-    def token_times(self, w, t_flipped):
-        return flipped.token_times(w, t_flipped)
-
-    def loss(self, pred_u, actions, noise, w):
-        return flipped.loss(pred_u, actions, noise, w)
-
-    def batch_loss(self, preds_u, actions, noise, w):
-        return flipped.batch_loss(preds_u, actions, noise, w)
-
-    def velocity(self, params, obs, x, t_flipped):
-        return field.velocity(_ufield(params), obs, x, t_flipped)
-
-    def velocity_vjp(self, params, obs, x, t_flipped, cotangent):
-        # (du/dx)^T g = -(dv/dx)^T g; the runner negates it back ([CF-10])
-        return field.velocity_vjp(_ufield(params), obs, x, t_flipped, cotangent)
-
-    def naive_sample(self, params, obs, noise, T):
-        return flipped.naive_sample(_ufield(params), obs, noise, T)
-
-    def rtc_sample(self, params, obs, noise, prior, w, T):
-        return flipped.rtc_sample(_ufield(params), obs, noise, prior, w, T)
-
-    def guided_sample(self, params, obs, noise, prior, w, T, max_guidance):
-        return flipped.guided_sample(_ufield(params), obs, noise, prior, w, T, max_guidance)
-
-    def guidance_weight(self, t_flipped, max_guidance):
-        return flipped.guidance_weight(t_flipped, max_guidance)
+    def make_field(self, params):
+        # The field u = -v of the flipped convention: velocity_vjp returns (du/dx)^T g = -(dv/dx)^T g,
+        # which the runner negates back ([CF-10]).
+        return flipped.FlippedField(VelocityField(params))
 
 
 ADAPTER = FlippedTorchAdapter()
