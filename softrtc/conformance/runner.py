@@ -134,18 +134,21 @@ def load_vectors(directory=None) -> list[dict]:
         raise VectorError(f"vectors directory {d} holds no *.json vector files")
     index = _read_index(d, files)
     out, seen = [], {}
-    major = FORMAT_VERSION.split(".")[0]
     for p in files:
         try:
-            data = parse_json(p.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as exc:
+            raw = p.read_bytes()
+        except OSError as exc:
+            raise VectorError(f"cannot read vector file {p}: {exc}") from None
+        if index is not None:
+            _check_digest(p.name, raw, index[p.name])
+        try:
+            data = parse_json(raw.decode("utf-8"))
+        except ValueError as exc:
             raise VectorError(f"cannot read vector file {p}: {exc}") from None
         if not isinstance(data, dict):
             raise VectorError(f"{p.name}: expected a JSON object with 'format_version' and 'cases', "
                               f"got a {type(data).__name__}")
-        fv = str(data.get("format_version", ""))
-        if fv.split(".")[0] != major:
-            raise VectorError(f"{p.name}: format_version {fv!r} is not readable by this runner (needs {major}.x)")
+        _check_format(p.name, data.get("format_version"))
         if not isinstance(data.get("cases"), list):
             raise VectorError(f"{p.name}: missing 'cases' list")
         fields = data.get("fields", {})
@@ -164,9 +167,16 @@ def load_vectors(directory=None) -> list[dict]:
     return out
 
 
+def _check_format(where: str, version) -> None:
+    """A format_version this runner reads: the same major version as FORMAT_VERSION ([CF-2])."""
+    major = FORMAT_VERSION.split(".")[0]
+    if str(version or "").split(".")[0] != major:
+        raise VectorError(f"{where}: format_version {version!r} is not readable by this runner (needs {major}.x)")
+
+
 def _read_index(d: Path, files: list) -> dict | None:
-    """The ``files`` entry of ``d/index.json`` after checking every vector file against it ([CF-25]), or None
-    when the directory has no index (a hand-made set of cases)."""
+    """``d/index.json``'s ``files`` entry, {name: {sha256, cases, ...}}, once it lists exactly ``files`` in a
+    readable format ([CF-25]); None when the directory has no index (a hand-made set of cases)."""
     path = d / "index.json"
     if not path.exists():
         return None
@@ -177,23 +187,24 @@ def _read_index(d: Path, files: list) -> dict | None:
     listed = index.get("files") if isinstance(index, dict) else None
     if not isinstance(listed, dict) or not all(isinstance(v, dict) for v in listed.values()):
         raise VectorError(f"{path}: expected an object with 'files': {{name: {{sha256, cases, ...}}}} ([CF-2])")
-    major = FORMAT_VERSION.split(".")[0]
-    if str(index.get("format_version", "")).split(".")[0] != major:
-        raise VectorError(f"{path}: format_version {index.get('format_version')!r} is not readable by this runner "
-                          f"(needs {major}.x)")
+    _check_format(str(path), index.get("format_version"))
     names = {p.name for p in files}
-    for name in sorted(set(listed) - names):
-        raise VectorError(f"{name}: listed in index.json but missing from {d} ([CF-25])")
-    for name in sorted(names - set(listed)):
-        raise VectorError(f"{name}: not listed in index.json; the vectors in {d} are not one generated set ([CF-25])")
-    for p in files:
-        digest = hashlib.sha256(p.read_bytes()).hexdigest()
-        if digest != listed[p.name].get("sha256"):
-            raise VectorError(f"{p.name}: SHA-256 {digest[:12]}... differs from index.json's "
-                              f"{str(listed[p.name].get('sha256'))[:12]}...: the file was changed after generation "
-                              "(regenerate with `softrtc conformance generate`, or run a hand-made set from a "
-                              "folder without index.json) ([CF-25])")
+    missing, unlisted = sorted(set(listed) - names), sorted(names - set(listed))
+    if missing:
+        raise VectorError(f"{missing[0]}: listed in index.json but missing from {d} ([CF-25])")
+    if unlisted:
+        raise VectorError(f"{unlisted[0]}: not listed in index.json; the vectors in {d} are not one generated set "
+                          "([CF-25])")
     return listed
+
+
+def _check_digest(name: str, raw: bytes, entry: dict) -> None:
+    """The file's SHA-256 must be the one index.json lists ([CF-25])."""
+    digest = hashlib.sha256(raw).hexdigest()
+    if digest != entry.get("sha256"):
+        raise VectorError(f"{name}: SHA-256 {digest[:12]}... differs from index.json's {str(entry.get('sha256'))[:12]}"
+                          "...: the file was changed after generation (regenerate with `softrtc conformance "
+                          "generate`, or run a hand-made set from a folder without index.json) ([CF-25])")
 
 
 def _check_case_shape(file: str, i: int, case, fields: dict) -> None:
