@@ -489,9 +489,11 @@ def test_gelu_recomputing_vjp_matches_autodiff():
     def loss(prm, a):
         return jnp.sum(nnx.merge(graphdef, prm)(obs, a, t) * ct)
 
-    got_x, got_p = jax.grad(loss, argnums=(1, 0))(params, xs)[0], jax.grad(loss)(params, xs)
-    with P.autodiff_vjps(gelu=True):  # plain autodiff of nnx.gelu
-        want_x, want_p = jax.grad(loss, argnums=1)(params, xs), jax.grad(loss)(params, xs)
+    with P.autodiff_vjps(gelu=False):  # the recomputing VJP; the shipped blocks use autodiff of nnx.gelu
+        got_x, got_p = jax.grad(loss, argnums=1)(params, xs), jax.grad(loss)(params, xs)
+        recompute_hlo = jax.jit(jax.grad(loss, argnums=1)).lower(params, xs).as_text()
+    want_x, want_p = jax.grad(loss, argnums=1)(params, xs), jax.grad(loss)(params, xs)
+    assert recompute_hlo != jax.jit(jax.grad(loss, argnums=1)).lower(params, xs).as_text()
     np.testing.assert_allclose(got_x, want_x, rtol=1e-4, atol=1e-5)
     assert float(jnp.max(jnp.abs(want_x))) > 1e-3
     for a, b in zip(jax.tree.leaves(got_p), jax.tree.leaves(want_p)):
@@ -515,16 +517,24 @@ def test_autodiff_vjps_switches_blocks_only_while_tracing_and_restores():
         return f.lower(xs).as_text(), f(xs)
 
     shipped, g0 = vjp_hlo()
+    assert P._AUTODIFF == {"layer_norm": False, "gelu": True}  # [P-17] closed form, [P-20] autodiff
+    with P.autodiff_vjps():  # the defaults are the shipped choices
+        assert vjp_hlo()[0] == shipped
     with P.autodiff_vjps(layer_norm=True, gelu=True):
         plain, g1 = vjp_hlo()
         assert P._AUTODIFF == {"layer_norm": True, "gelu": True}
     assert shipped != plain  # e.g. the closed-form LayerNorm backward's product is gone
     np.testing.assert_allclose(g0, g1, rtol=1e-4, atol=1e-5)
-    assert P._AUTODIFF == {"layer_norm": False, "gelu": False}
+    with P.autodiff_vjps(gelu=False):
+        recompute, g2 = vjp_hlo()
+        assert P._AUTODIFF == {"layer_norm": False, "gelu": False}
+    assert recompute not in (shipped, plain)  # the recomputing GELU backward
+    np.testing.assert_allclose(g0, g2, rtol=1e-4, atol=1e-5)
+    assert P._AUTODIFF == {"layer_norm": False, "gelu": True}
     with pytest.raises(RuntimeError, match="inside"):
-        with P.autodiff_vjps(gelu=True):
+        with P.autodiff_vjps(gelu=False):
             raise RuntimeError("inside")
-    assert P._AUTODIFF == {"layer_norm": False, "gelu": False}
+    assert P._AUTODIFF == {"layer_norm": False, "gelu": True}
     with pytest.raises(ValueError, match="gelu must be a bool"):
         with P.autodiff_vjps(gelu=1):
             pass

@@ -626,14 +626,14 @@ def _targets(config: BenchConfig, res: dict) -> list[dict]:
 # --------------------------------------------------------------------------- pull-back ablation
 
 # [B-12] Variants of the guided soft row: label, LayerNorm VJP by autodiff ([P-17] off), GELU VJP by
-# autodiff ([P-20] off), stored transposed kernels ([P-19]), pull-back ("rule" = guided_tokens_for,
-# "flip" = the other choice, "full" = over all tokens, [G-7]).
+# autodiff (as shipped, [P-20]; False = the recomputing VJP), stored transposed kernels ([P-19]), pull-back
+# ("rule" = guided_tokens_for, "flip" = the other choice, "full" = over all tokens, [G-7]).
 VJP_VARIANTS = {
-    "shipped": ("as shipped", False, False, True, "rule"),
-    "layer_norm_autodiff": ("LayerNorm VJP by autodiff", True, False, True, "rule"),
-    "gelu_autodiff": ("GELU VJP by autodiff", False, True, True, "rule"),
-    "no_stored_transposes": ("no stored transposes", False, False, False, "rule"),
-    "other_pullback": ("the other pull-back", False, False, True, "flip"),
+    "shipped": ("as shipped", False, True, True, "rule"),
+    "layer_norm_autodiff": ("LayerNorm VJP by autodiff", True, True, True, "rule"),
+    "gelu_recompute": ("GELU VJP recomputing tanh", False, False, True, "rule"),
+    "no_stored_transposes": ("no stored transposes", False, True, False, "rule"),
+    "other_pullback": ("the other pull-back", False, True, True, "flip"),
     "plain_autodiff": ("plain autodiff, full pull-back", True, True, False, "full"),
 }
 

@@ -241,9 +241,9 @@ def gelu(x: jax.Array) -> jax.Array:
     module. The backward keeps only ``x`` and evaluates
     ``gelu'(x) = (1 + th) / 2 + x (1 - th^2) c (1 + 3 a x^2) / 2`` with
     ``th = tanh(c (x + a x^3))``, ``c = sqrt(2 / pi)``, ``a = 0.044715``.
-    Autodiff instead keeps ``th`` from the forward, which makes XLA:CPU write
-    it out in a kernel of its own: one more pass over the largest activations
-    (the token-mixing hidden layer, ``[B, C, 64]``) per layer and step.
+    The policy's blocks differentiate ``nnx.gelu`` by autodiff as shipped
+    ([P-20]); this VJP is the measured alternative, selected inside
+    ``autodiff_vjps(gelu=False)`` ([B-12]).
 
     ``x`` is a floating array of any shape with no empty axis ([P-15]); only
     its shape and dtype are checked (free under ``jit``), not its values.
@@ -277,23 +277,25 @@ def _gelu_bwd(x, g):
 _gelu.defvjp(_gelu_fwd, _gelu_bwd)
 
 
-# Building blocks differentiated by plain autodiff instead of their hand-written VJPs ([P-17], [P-20]);
-# read while a policy function is traced, set only by `autodiff_vjps`.
-_AUTODIFF = {"layer_norm": False, "gelu": False}
+# How the blocks are differentiated, read while a policy function is traced and set only by
+# `autodiff_vjps`. As shipped: LayerNorm by its closed-form VJP ([P-17]), GELU by autodiff ([P-20]).
+_AUTODIFF = {"layer_norm": False, "gelu": True}
 
 
 @contextlib.contextmanager
-def autodiff_vjps(*, layer_norm: bool = False, gelu: bool = False):
-    """Trace policy functions with plain autodiff for the chosen blocks, for ablations ([B-12]).
+def autodiff_vjps(*, layer_norm: bool = False, gelu: bool = True):
+    """Trace policy functions with the chosen VJP of each block, for ablations ([B-12]).
 
     Inside the ``with`` block, policy functions traced (jitted, lowered) use
-    ``norm(x)`` instead of :func:`layer_norm`'s closed-form VJP ([P-17]) when
-    ``layer_norm`` is True, and ``nnx.gelu`` instead of :func:`gelu`'s
-    recomputing VJP ([P-20]) when ``gelu`` is True. Forward values are the
-    same; functions compiled before or after the block are unaffected. Not
-    thread-safe: it sets module state for the duration of the block.
+    ``norm(x)`` (plain autodiff) instead of :func:`layer_norm`'s closed-form
+    VJP ([P-17]) when ``layer_norm`` is True, and :func:`gelu`'s recomputing
+    VJP instead of autodiff of ``nnx.gelu`` ([P-20]) when ``gelu`` is False.
+    The defaults are the shipped choices, so ``autodiff_vjps()`` changes
+    nothing. Forward values are the same; functions compiled before or after
+    the block are unaffected. Not thread-safe: it sets module state for the
+    duration of the block.
 
-    >>> with autodiff_vjps(gelu=True):
+    >>> with autodiff_vjps(gelu=False):  # the recomputing GELU VJP of [P-20]
     ...     pass  # e.g. jax.jit(f).lower(...).compile()
     """
     for name, value in (("layer_norm", layer_norm), ("gelu", gelu)):
