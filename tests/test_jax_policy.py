@@ -460,8 +460,8 @@ def test_layer_norm_custom_vjp_matches_autodiff():
 
 
 def test_gelu_recomputing_vjp_matches_autodiff():
-    """P-20, P-14: the GELU with a recomputing VJP is bitwise nnx.gelu forward, and its gradient (alone, through
-    the policy in x, and in the parameters) agrees with autodiff of nnx.gelu."""
+    """P-20, P-14: the alternative GELU VJP (recomputing tanh) is bitwise nnx.gelu forward, and its gradient
+    (alone, through the policy in x, and in the parameters) agrees with the shipped autodiff of nnx.gelu."""
     import jax
 
     import softrtc.jax.policy as P
