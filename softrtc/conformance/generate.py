@@ -7,7 +7,9 @@ The cases of each chapter, and so the coverage of [CF-4], are built by the ``gen
 
 Every random input comes from ``numpy.random.default_rng`` with a fixed seed and
 every number is written with Python's shortest round-trip ``repr``, keys sorted,
-so two runs give byte-identical files ([CF-3]).
+so two runs on one machine give byte-identical files ([CF-3]); on another
+machine they agree within :data:`REGEN_TOL` (:func:`compare`,
+``softrtc conformance generate --check``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +41,9 @@ TOL_WEIGHTS = {"abs": 1e-5, "rel": 1e-5}
 TOL_ARITH = {"abs": 1e-5, "rel": 1e-5}
 TOL_TRACE = {"abs": 1e-4, "rel": 1e-4}
 TOL_COPY = {"abs": 1e-6, "rel": 1e-6}
+# How far two regenerations may differ ([CF-3]): float64 rounding of NumPy's
+# CPU-dependent transcendental kernels, far inside every tolerance above.
+REGEN_TOL = {"abs": 1e-12, "rel": 1e-12}
 
 HORIZONS = (4, 8, 10, 16, 50)
 LAMS = (0.5, 1.0, 1.5, 2.0, 3.0, 4.0)
@@ -569,15 +575,97 @@ def generate(out_dir=None) -> dict:
     return sizes
 
 
+def _walk_diff(a, b, where: str, worst: list) -> None:
+    """Raises ValueError where ``a`` and ``b`` differ other than in the value of a real number; collects
+    (|a - b|, excess over REGEN_TOL) of the reals in ``worst``."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if list(a) != list(b):
+            raise ValueError(f"{where}: keys differ ({sorted(a)} against {sorted(b)})")
+        for k in a:
+            _walk_diff(a[k], b[k], f"{where}/{k}", worst)
+    elif isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            raise ValueError(f"{where}: lengths differ ({len(a)} against {len(b)})")
+        for i, (x, y) in enumerate(zip(a, b)):
+            _walk_diff(x, y, f"{where}[{i}]", worst)
+    elif type(a) is float and type(b) is float:
+        diff = abs(a - b)
+        worst.append((diff, diff / (REGEN_TOL["abs"] + REGEN_TOL["rel"] * abs(b)), where))
+    elif type(a) is not type(b) or a != b:
+        raise ValueError(f"{where}: {a!r} against {b!r}")
+
+
+def compare(got_dir, want_dir) -> dict:
+    """Compare two vector directories file by file ([CF-3]).
+
+    Returns ``{file: {"identical": bool, "max_abs_diff": float, "within": bool, "worst": str | None}}``
+    for every ``*.json`` of ``want_dir`` except ``index.json`` (whose digests follow the bytes):
+    ``identical`` when the bytes agree; otherwise the files must have the same
+    structure, strings, booleans and integers ([CF-23]), and ``within`` tells
+    whether every real agrees within :data:`REGEN_TOL`. Raises ValueError when
+    a file is missing or differs in anything but the value of a real.
+    """
+    dirs = []
+    for name, d in (("got_dir", got_dir), ("want_dir", want_dir)):
+        if not isinstance(d, (str, os.PathLike)) or not Path(d).is_dir():
+            raise ValueError(f"{name} must be an existing directory, got {d!r}")
+        dirs.append(Path(d))
+    got, want = dirs
+    names = sorted(p.name for p in want.glob("*.json") if p.name != "index.json")
+    if not names:
+        raise ValueError(f"want_dir {want} holds no vector files")
+    out = {}
+    for name in names:
+        if not (got / name).is_file():
+            raise ValueError(f"{name} is missing from {got}")
+        a, b = (got / name).read_bytes(), (want / name).read_bytes()
+        if a == b:
+            out[name] = {"identical": True, "max_abs_diff": 0.0, "within": True, "worst": None}
+            continue
+        worst: list = []
+        _walk_diff(json.loads(a), json.loads(b), name, worst)
+        top = max(worst, key=lambda w: w[1], default=(0.0, 0.0, None))
+        out[name] = {"identical": False, "max_abs_diff": max((w[0] for w in worst), default=0.0),
+                     "within": top[1] <= 1.0, "worst": top[2]}
+    return out
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=output_dir(), default=None, help=f"output directory (default: {DEFAULT_OUT})")
+    parser.add_argument("--check", action="store_true",
+                        help="regenerate into a temporary directory and compare with --out (default: the shipped "
+                             "vectors) instead of writing; exit 1 unless every number agrees within "
+                             f"{REGEN_TOL['abs']:g} + {REGEN_TOL['rel']:g} |x|")
+
+
+def _check(prog: str, out_dir) -> int:
+    want = Path(out_dir) if out_dir is not None else DEFAULT_OUT
+    if not want.is_dir():
+        raise ValueError(f"--out must be an existing directory of vector files with --check, got {want}")
+    with tempfile.TemporaryDirectory() as tmp:
+        generate(tmp)
+        try:
+            res = compare(tmp, want)
+        except ValueError as exc:
+            print(f"{prog}: the regenerated vectors differ from {want} beyond rounding: {exc}", file=sys.stderr)
+            return 1
+    for name, r in res.items():
+        status = ("byte-identical" if r["identical"] else
+                  f"max |diff| {r['max_abs_diff']:.2e} ({'within' if r['within'] else 'BEYOND'} rounding)")
+        print(f"{name:20s} {status}")
+    ok = all(r["within"] for r in res.values())
+    print("regeneration agrees" if ok else "regeneration differs beyond rounding", f"with {want}")
+    return 0 if ok else 1
 
 
 def run_from_args(args) -> int:
+    prog = getattr(args, "_prog", "softrtc conformance generate")
     try:
+        if getattr(args, "check", False):
+            return _check(prog, args.out)
         sizes = generate(args.out)
     except (ValueError, OSError) as exc:
-        return command_error(getattr(args, "_prog", "softrtc conformance generate"), exc)
+        return command_error(prog, exc)
     for name, size in sizes.items():
         print(f"{name:20s} {size:>9d} bytes")
     print(f"total {sum(sizes.values())} bytes in {Path(args.out) if args.out else DEFAULT_OUT}")

@@ -8,6 +8,8 @@ per-token flow time:
     phi(t)_j = [t_j, sin(pi t_j), cos(pi t_j)]                 # [H, 3]
     h = tanh(vec(x) W1 + vec(phi(t)) Wt + obs Wo + b1)         # [K]
     v = reshape(h W2 + b2, [H, A])
+
+Every vector-matrix product is summed in index order (:func:`vecmat`, [F-4]).
 """
 
 from __future__ import annotations
@@ -17,6 +19,30 @@ import numpy as np
 from ._validate import check_array, check_int, check_real
 
 PARAM_NAMES = ("W1", "Wt", "Wo", "b1", "W2", "b2")
+
+
+def vecmat(v: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``v @ M`` for v [n], M [n, K], summed over i in index order ([F-4]).
+
+    One rounding per product and one per addition, ``((v0 M0 + v1 M1) + v2 M2) + ...``,
+    so the result does not depend on which BLAS kernel the CPU selects
+    (OpenBLAS accumulates in kernel-specific orders) and the vectors built
+    from this field regenerate to the same bytes ([CF-3]).
+
+    >>> vecmat(np.array([1.0, 2.0]), np.array([[1.0, 0.5], [3.0, -1.0]]))
+    array([ 7. , -1.5])
+    """
+    v = check_array("v", v, ndim=1)
+    M = check_array("M", M, shape=(v.shape[0], None))
+    return _vecmat(v, M)
+
+
+def _vecmat(v: np.ndarray, M: np.ndarray) -> np.ndarray:
+    # vecmat without the checks, for arrays the field has already validated.
+    acc = v[0] * M[0]
+    for i in range(1, v.shape[0]):
+        acc = acc + v[i] * M[i]
+    return acc
 
 
 def time_features(t) -> np.ndarray:
@@ -86,22 +112,23 @@ class ReferenceVelocityField:
 
     def _hidden(self, obs, x, t) -> np.ndarray:
         p = self.params
-        pre = x.reshape(-1) @ p["W1"] + time_features(t).reshape(-1) @ p["Wt"] + obs @ p["Wo"] + p["b1"]
+        pre = (_vecmat(x.reshape(-1), p["W1"]) + _vecmat(time_features(t).reshape(-1), p["Wt"])
+               + _vecmat(obs, p["Wo"]) + p["b1"])
         return np.tanh(pre)
 
     def __call__(self, obs, x, t) -> np.ndarray:
         """Velocity [H, A] at chunk x [H, A] with per-token time t [H] ([F-1])."""
         obs, x, t = self._check(obs, x, t)
         h = self._hidden(obs, x, t)
-        return (h @ self.params["W2"] + self.params["b2"]).reshape(self.horizon, self.action_dim)
+        return (_vecmat(h, self.params["W2"]) + self.params["b2"]).reshape(self.horizon, self.action_dim)
 
     def vjp(self, obs, x, t, cotangent) -> np.ndarray:
         """(d v / d x)^T cotangent, shape [H, A] ([F-2])."""
         obs, x, t = self._check(obs, x, t)
         g = check_array("cotangent", cotangent, shape=(self.horizon, self.action_dim))
         h = self._hidden(obs, x, t)
-        dh = (g.reshape(-1) @ self.params["W2"].T) * (1.0 - h * h)
-        return (dh @ self.params["W1"].T).reshape(self.horizon, self.action_dim)
+        dh = _vecmat(g.reshape(-1), self.params["W2"].T) * (1.0 - h * h)
+        return _vecmat(dh, self.params["W1"].T).reshape(self.horizon, self.action_dim)
 
     def to_dict(self) -> dict:
         return {k: v.tolist() for k, v in self.params.items()}
