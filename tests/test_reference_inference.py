@@ -32,6 +32,40 @@ def test_field_formula():
     assert np.array_equal(ReferenceVelocityField(f.params)(obs, x, t), f(obs, x, t))
 
 
+def test_products_summed_in_index_order():
+    """F-4: the field and its VJP are, bit for bit, the products summed over the vector's index in order
+    (written out here with Python floats), and vecmat checks its arguments."""
+    from softrtc.reference.velocity import vecmat
+
+    def ordered(v, M):  # sum_i v_i M_i, left to right, one rounding per operation
+        out = []
+        for k in range(len(M[0])):
+            acc = float(v[0]) * float(M[0][k])
+            for i in range(1, len(v)):
+                acc = acc + float(v[i]) * float(M[i][k])
+            out.append(acc)
+        return np.array(out)
+
+    f, obs, x, g = make(3, H=4, A=3, O=5)
+    t = np.random.default_rng(3).random(4)
+    p = f.params
+    pre = (ordered(x.reshape(-1), p["W1"]) + ordered(time_features(t).reshape(-1), p["Wt"])
+           + ordered(obs, p["Wo"]) + p["b1"])
+    h = np.tanh(pre)
+    assert np.array_equal(f(obs, x, t), (ordered(h, p["W2"]) + p["b2"]).reshape(4, 3))
+    dh = ordered(g.reshape(-1), p["W2"].T) * (1.0 - h * h)
+    assert np.array_equal(f.vjp(obs, x, t, g), ordered(dh, p["W1"].T).reshape(4, 3))
+    # A summation order BLAS may take (pairs first) rounds differently for some inputs; the order matters.
+    v, M = np.array([1.0, 1e16, -1e16]), np.ones((3, 1))
+    assert vecmat(v, M)[0] == 0.0 and v[0] + (v[1] + v[2]) == 1.0
+    with pytest.raises(ValueError, match="M must have shape"):
+        vecmat(np.ones(3), np.ones((2, 4)))
+    with pytest.raises(ValueError, match="v must have 1 dimensions"):
+        vecmat(np.ones((3, 1)), np.ones((3, 4)))
+    with pytest.raises(ValueError, match="v must contain only finite"):
+        vecmat(np.array([np.nan, 1.0]), np.ones((2, 2)))
+
+
 @given(st.integers(0, 50))
 def test_vjp_matches_finite_differences(seed):
     """F-2: the hand-written VJP equals J^T g (central differences)."""
