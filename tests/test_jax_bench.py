@@ -40,6 +40,31 @@ def test_rows_and_json_structure(result, tmp_path):
     assert json.loads(path.read_text())["rows"] == result["rows"]
 
 
+def test_environment_names_the_cpu_model(result, monkeypatch):
+    """B-10: the result records the CPU model beside the core count and the table's header prints both; a
+    result written without the model (an older file) still formats."""
+    env = result["environment"]
+    assert isinstance(env["cpu_model"], str) and env["cpu_model"] and env["cpu_count"] >= 1
+    header = bench.format_table(result).splitlines()[0]
+    assert f"({env['cpu_count']} cores, {env['cpu_model']})" in header
+    older = dict(result, environment={k: v for k, v in env.items() if k != "cpu_model"})
+    assert f"({env['cpu_count']} cores)" in bench.format_table(older).splitlines()[0]
+    # Without /proc/cpuinfo the model comes from platform.processor(), else "unknown".
+    import builtins
+    real_open = builtins.open
+
+    def no_cpuinfo(path, *a, **k):
+        if str(path) == "/proc/cpuinfo":
+            raise OSError("no such file")
+        return real_open(path, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", no_cpuinfo)
+    monkeypatch.setattr(bench.platform, "processor", lambda: "")
+    assert bench.cpu_model() == "unknown"
+    monkeypatch.setattr(bench.platform, "processor", lambda: "arm64")
+    assert bench.cpu_model() == "arm64"
+
+
 def test_ratios_are_against_naive_of_the_same_run(result):
     """B-6: ratio = median of the row / median of the naive row of the same batch size."""
     for per_b in result["chunk"].values():

@@ -44,6 +44,7 @@ __all__ = [
     "CHUNK_ROWS",
     "BenchConfig",
     "build_rows",
+    "cpu_model",
     "guided_tokens_for",
     "run_benchmark",
     "run_vjp_ablation",
@@ -482,6 +483,7 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
                              np.size(a) for a in jax.tree.leaves(nnx.state(policy, nnx.Param))))},
         "environment": {"jax": jax.__version__, "backend": jax.default_backend(),
                         "device": str(jax.devices()[0].device_kind), "cpu_count": os.cpu_count(),
+                        "cpu_model": cpu_model(),
                         "machine": platform.machine(), "python": platform.python_version()},
         "tolerance": {"atol": ATOL, "rtol": RTOL},
         "table_build_ms": {r.name: 1e3 * r.table_seconds for r in rows if r.path == "fast"},
@@ -674,7 +676,8 @@ def run_vjp_ablation(config: BenchConfig = BenchConfig(), *,
     delays = [jnp.asarray(d, jnp.int32) for d in config.delays]
     result: dict = {
         "config": dataclasses.asdict(config),
-        "environment": {"jax": jax.__version__, "backend": jax.default_backend(), "cpu_count": os.cpu_count()},
+        "environment": {"jax": jax.__version__, "backend": jax.default_backend(), "cpu_count": os.cpu_count(),
+                        "cpu_model": cpu_model()},
         "tolerance": {"atol": ATOL, "rtol": RTOL},
         "variants": {k: {"label": v[0], "layer_norm_autodiff": v[1], "gelu_autodiff": v[2],
                          "stored_transposes": v[3], "pullback": v[4]} for k, v in VJP_VARIANTS.items()},
@@ -736,6 +739,28 @@ def _formatted(producer: str, fmt: Callable[[dict], str], res: Any, keys: tuple)
         raise ValueError(f"res must be a result of {producer}; an entry has the wrong type or form ({exc})") from None
 
 
+def cpu_model() -> str:
+    """The CPU's model name (Linux ``/proc/cpuinfo``, else ``platform.processor()``), or ``"unknown"``.
+
+    Ratios between rows depend on the CPU model, not only on the core count ([B-10]).
+    """
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name" and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _machine(env: Mapping) -> str:
+    # Results written before the CPU model was recorded lack the key.
+    model = env.get("cpu_model")
+    return f"{env['backend']} ({env['cpu_count']} cores{', ' + model if model else ''})"
+
+
 _VJP_KEYS = ("config", "environment", "variants", "chunk", "agreement", "restricted_pullback", "seconds")
 _RUNTIME_KEYS = ("config", "architecture", "environment", "rows", "chunk", "agreement", "targets", "seconds")
 
@@ -752,7 +777,7 @@ def _format_vjp_table(res: dict) -> str:
     cfg = res["config"]
     lines = [f"softrtc bench vjp: guided soft RTC (fast path), {cfg['arch']} network, s {cfg['execute_horizon']}, "
              f"T {cfg['num_steps']}; median of {cfg['calls']} interleaved calls after {cfg['warmup']} warm-up "
-             f"rounds; {res['environment']['backend']} ({res['environment']['cpu_count']} cores), "
+             f"rounds; {_machine(res['environment'])}, "
              f"jax {res['environment']['jax']}"]
     for b, stats in res["chunk"].items():
         head = f"{'variant':<32s} {'pull-back':<10s} {'ms':>9s} {'/naive':>7s} {'/shipped':>9s} {'max|v-shipped|':>15s}"
@@ -786,7 +811,7 @@ def _format_table(res: dict) -> str:
     lines = [f"softrtc bench runtime: obs {arch['obs_dim']}, action {arch['action_dim']}, "
              f"H {arch['action_chunk_size']}, s {cfg['execute_horizon']}, T {cfg['num_steps']}, d {d}; "
              f"median of {cfg['calls']} interleaved calls after {cfg['warmup']} warm-up rounds; "
-             f"{res['environment']['backend']} ({res['environment']['cpu_count']} cores), "
+             f"{_machine(res['environment'])}, "
              f"jax {res['environment']['jax']}"]
     head = f"{'method':<26s} {'path':<15s}" + "".join(f" {'b=' + b + ' ms':>10s} {'/naive':>7s}" for b in bs) \
         + f" {'max|fast-sf|':>12s}"
