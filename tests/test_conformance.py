@@ -378,6 +378,9 @@ def test_generate_check_command(tmp_path):
     bad = subprocess.run(cmd + ["--out", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 1 and "sampler.json" in bad.stdout and "BEYOND" in bad.stdout
     assert (tmp_path / "sampler.json").read_bytes() == before
+    missing = subprocess.run(cmd + ["--out", str(tmp_path / "none")], capture_output=True, text=True, cwd=ROOT)
+    assert missing.returncode == 2 and "--out must be an existing directory" in missing.stderr
+    assert not (tmp_path / "none").exists()
 
 
 def test_case_structure_and_tolerances(vector_files):

@@ -31,6 +31,7 @@ from softrtc.reference.weights import SoftWindow
 
 from .._cli_util import command_error, output_dir
 from . import FORMAT_VERSION, SPEC_VERSION
+from .runner import parse_json
 
 DEFAULT_OUT = Path(__file__).resolve().parents[2] / "conformance" / "vectors"
 
@@ -623,7 +624,7 @@ def compare(got_dir, want_dir) -> dict:
             out[name] = {"identical": True, "max_abs_diff": 0.0, "within": True, "worst": None}
             continue
         worst: list = []
-        _walk_diff(json.loads(a), json.loads(b), name, worst)
+        _walk_diff(parse_json(a), parse_json(b), name, worst)  # [CF-23] ints stay ints
         top = max(worst, key=lambda w: w[1], default=(0.0, 0.0, None))
         out[name] = {"identical": False, "max_abs_diff": max((w[0] for w in worst), default=0.0),
                      "within": top[1] <= 1.0, "worst": top[2]}
