@@ -9,8 +9,18 @@ from __future__ import annotations
 
 import os
 import tempfile
+from importlib import resources
 from pathlib import Path
 from typing import Callable, IO
+
+
+def package_data_dir(package: str, name: str) -> Path:
+    """The folder ``name`` shipped as package data of ``package``, found through ``importlib.resources``
+    so that an installed wheel finds it wherever it lies (an unpacked install; an archive is refused)."""
+    root = resources.files(package).joinpath(name)
+    if not isinstance(root, Path):
+        raise OSError(f"{package}'s data folder {name} is inside an archive ({root}); install softrtc unpacked")
+    return root
 
 
 def check_out_dir(name: str, value, files: tuple = ()) -> Path:

@@ -9,19 +9,35 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import os
 import sys
 
 from ._cli_util import command_error, leaf_progs
 
-# (module, extra that provides its dependencies)
+# (module, the name its demo step and missing-extra line go by, extra that provides its dependencies)
 _SUBCOMMAND_MODULES = [
-    ("softrtc.reference.cli", None),
-    ("softrtc.conformance.cli", None),
-    ("softrtc.jax.cli", "jax"),
-    ("softrtc.arm.cli", "arm"),
-    ("softrtc.kinetix.cli", "kinetix"),
+    ("softrtc.reference_cli", "reference", None),
+    ("softrtc.conformance.cli", "conformance", None),
+    ("softrtc.jax.cli", "bench", "jax"),
+    ("softrtc.arm.cli", "arm", "arm"),
+    ("softrtc.kinetix.cli", "kinetix", "kinetix"),
 ]
+
+# The modules each extra installs that its commands import (lazily, when they run).
+_EXTRA_MODULES = {
+    "jax": ("jax", "flax", "optax"),
+    "arm": ("jax", "flax", "optax", "pymunk"),
+    "kinetix": ("jax", "flax", "optax", "kinetix"),
+}
+
+
+def _missing_module(extra: str | None) -> str | None:
+    """The first module of ``extra`` that is not installed, or None."""
+    for name in _EXTRA_MODULES.get(extra, ()):
+        if importlib.util.find_spec(name) is None:
+            return name
+    return None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,33 +48,38 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the main job: worked examples, weights table, and every "
                                        "available check on built-in defaults")
     demo.set_defaults(func=_demo)
-    for mod_name, extra in _SUBCOMMAND_MODULES:
-        try:
-            mod = importlib.import_module(mod_name)
-        except ModuleNotFoundError as exc:
-            if exc.name and exc.name.startswith("softrtc"):
-                continue  # subcommand not present in this build
-            hint = f" (pip install 'softrtc[{extra}]')" if extra else ""
-            sub.add_parser(mod_name.split(".")[1], help=f"unavailable: missing {exc.name}{hint}")
+    for mod_name, label, extra in _SUBCOMMAND_MODULES:
+        missing = _missing_module(extra)
+        if missing:
+            _unavailable(sub, label, extra, missing)
             continue
-        mod.add_subparsers(sub)
+        importlib.import_module(mod_name).add_subparsers(sub)
     leaf_progs(parser)
     return parser
+
+
+def _unavailable(sub, label: str, extra: str, missing: str) -> None:
+    """A command whose extra is not installed: listed in the help, and run it says which extra in one line."""
+    hint = f"pip install 'softrtc[{extra}]'"
+    message = f"needs the '{extra}' extra (missing module {missing}): {hint}"
+    parser = sub.add_parser(label, help=f"unavailable: {message}", add_help=False)
+    parser.add_argument("rest", nargs=argparse.REMAINDER)
+    parser.set_defaults(func=lambda args: command_error(f"softrtc {label}", message))
 
 
 def _demo(args) -> int:
     """Run every demo step that is available, in order; fail if any fails."""
     steps = []
-    for mod_name, _ in _SUBCOMMAND_MODULES:
-        try:
-            mod = importlib.import_module(mod_name)
-        except ModuleNotFoundError:
+    for mod_name, label, extra in _SUBCOMMAND_MODULES:
+        if _missing_module(extra):
+            print(f"(skipping the {label} demo: the '{extra}' extra is not installed)", flush=True)
             continue
+        mod = importlib.import_module(mod_name)
         if hasattr(mod, "demo"):
-            steps.append((mod_name, mod.demo))
+            steps.append((label, mod.demo))
     status = 0
     for name, fn in steps:
-        print(f"\n=== {name.rsplit('.', 2)[1]} ===", flush=True)
+        print(f"\n=== {name} ===", flush=True)
         rc = fn()
         if rc:
             print(f"demo step {name} failed with status {rc}", file=sys.stderr)

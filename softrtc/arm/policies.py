@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softrtc._files import check_out_dir
+from softrtc._files import check_out_dir, package_data_dir
 from softrtc.reference._validate import real_array
 from softrtc.jax import methods as jmethods
 from softrtc.jax import sampler as jsampler
@@ -540,8 +540,8 @@ def untrained_policy(seed: int = 0, method: str = "naive", config: ArmPolicyConf
 
 
 def default_checkpoint_dir() -> Path:
-    """The shipped checkpoints: ``softrtc/arm/checkpoints`` ([A-21])."""
-    return Path(__file__).resolve().parent / "checkpoints"
+    """The shipped checkpoints: package data ``softrtc/arm/checkpoints`` ([A-21])."""
+    return package_data_dir("softrtc.arm", "checkpoints")
 
 
 def load_policies(checkpoint_dir=None, methods=STUDY_METHODS) -> dict:

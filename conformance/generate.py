@@ -30,10 +30,9 @@ from softrtc.reference import (conventions, corruption, delays, endpoints, execu
 from softrtc.reference.weights import SoftWindow
 
 from .._cli_util import command_error, output_dir
-from . import FORMAT_VERSION, SPEC_VERSION
+from . import FORMAT_VERSION, SPEC_VERSION, vectors_dir
 from .runner import parse_json
 
-DEFAULT_OUT = Path(__file__).resolve().parents[2] / "conformance" / "vectors"
 
 # Tolerances (absolute, relative) per kind of quantity, loose enough for float32
 # ports ([CF-5]); integers and indices are compared exactly.
@@ -559,7 +558,7 @@ def generate(out_dir=None) -> dict:
     """Write every vector file and index.json into ``out_dir`` ([CF-1]); return {file: size in bytes}."""
     if out_dir is not None and not isinstance(out_dir, (str, os.PathLike)):
         raise ValueError(f"out_dir must be a path (str or os.PathLike), got {type(out_dir).__name__}")
-    out = Path(out_dir) if out_dir is not None else DEFAULT_OUT
+    out = Path(out_dir) if out_dir is not None else vectors_dir()
     if out.exists() and not out.is_dir():
         raise ValueError(f"out_dir must be a directory, got the file {out}")
     out.mkdir(parents=True, exist_ok=True)
@@ -632,7 +631,8 @@ def compare(got_dir, want_dir) -> dict:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=output_dir(), default=None, help=f"output directory (default: {DEFAULT_OUT})")
+    parser.add_argument("--out", type=output_dir(), default=None, help="output directory (default: the vectors shipped with softrtc, conformance/vectors/ in a source "
+                             "checkout)")
     parser.add_argument("--check", action="store_true",
                         help="regenerate into a temporary directory and compare with --out (default: the shipped "
                              "vectors) instead of writing; exit 1 unless every number agrees within "
@@ -640,7 +640,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _check(prog: str, out_dir) -> int:
-    want = Path(out_dir) if out_dir is not None else DEFAULT_OUT
+    want = Path(out_dir) if out_dir is not None else vectors_dir()
     if not want.is_dir():
         raise ValueError(f"--out must be an existing directory of vector files with --check, got {want}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -669,7 +669,7 @@ def run_from_args(args) -> int:
         return command_error(prog, exc)
     for name, size in sizes.items():
         print(f"{name:20s} {size:>9d} bytes")
-    print(f"total {sum(sizes.values())} bytes in {Path(args.out) if args.out else DEFAULT_OUT}")
+    print(f"total {sum(sizes.values())} bytes in {Path(args.out) if args.out else vectors_dir()}")
     return 0
 
 

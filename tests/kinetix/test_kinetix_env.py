@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SHARED_LEVELS_REASON
+from tests.conftest import SHARED_LEVELS_REASON
 
 from softrtc.kinetix import data as kdata
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHARED_LEVELS = (ROOT.parent / "shared" / "kinetix-levels").resolve()
 ALL_LEVELS = {
     "car_launch", "cartpole_thrust", "catapult", "catcher_v3", "chain_lander", "grasp_easy",

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from softrtc.reference import corruption, delays, endpoints, executor, guidance, loss, metrics, sampler, weights
 from softrtc.reference.velocity import ReferenceVelocityField
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 bad_ints = st.one_of(st.integers(-50, -1), st.just(2.0), st.just(True), st.just(float("nan")),
                      st.just("3"), st.just(None))
@@ -145,36 +145,8 @@ def test_reference_imports_only_numpy():
     assert out.stdout.strip() == "", f"third-party modules imported: {out.stdout}"
 
 
-@pytest.mark.slow
-def test_reference_imports_in_numpy_only_venv(tmp_path):
-    """In a clean virtual environment with only NumPy, `import softrtc.reference` works (README requirement)."""
-    venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-    py = venv / "bin" / "python"
-    subprocess.run([str(py), "-m", "pip", "install", "--quiet", "numpy"], check=True)
-    out = subprocess.run([str(py), "-c", "import softrtc.reference as r; print(r.prefix_weights(4, 1, 3).tolist())"],
-                         capture_output=True, text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[1.0, 0.6666666666666667, 0.33333333333333337, 0.0]"
-
-
-def test_cli_stops_quietly_when_its_reader_goes_away():
-    """N-11: `softrtc examples | head -1` must not end in a traceback: a closed stdout exits with 128 + SIGPIPE.
-
-    The read end is closed before the child has imported anything, so its first write meets a closed pipe.
-    """
-    proc = subprocess.Popen([sys.executable, "-m", "softrtc.cli", "examples"], cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    proc.stdout.close()
-    err = proc.stderr.read().decode()
-    assert proc.wait(timeout=120) == 141, err
-    assert "Traceback" not in err and "BrokenPipeError" not in err, err
-
-
 def test_flow_time_arguments_are_range_checked():
     """N-7: flow times outside [0, 1], NaN or bool, and mis-shaped flipped times raise naming the argument."""
-    from softrtc.jax import sampler as jsampler
-    from softrtc.jax import velocity as jvelocity
     from softrtc.reference import conventions, velocity
 
     w = [1.0, 0.5, 0.0]
@@ -183,38 +155,26 @@ def test_flow_time_arguments_are_range_checked():
             sampler.blend_time(t, w)
     with pytest.raises(ValueError, match="t_flipped must be a scalar or have the shape of weights"):
         conventions.flipped_token_times(w, np.array([0.1, 0.2]))
-    for fn in (velocity.time_features, jvelocity.time_features):
-        with pytest.raises(ValueError, match=r"^t values must lie in \[0\.0, 1\.0\]"):
-            fn(np.array([0.5, 7.0]))
     with pytest.raises(ValueError, match=r"^t values must lie in \[0\.0, 1\.0\]"):
-        jsampler.blend_time(np.float32(1.5), np.array(w))
-    with pytest.raises(ValueError, match=r"^t must be a scalar or have the batch shape of weights \[2\]"):
-        jsampler.blend_time(np.array([0.5, 0.2, 0.1]), np.zeros((2, 4)))
+        velocity.time_features(np.array([0.5, 7.0]))
     with pytest.raises(ValueError, match=r"^t values must lie"):
         F(np.zeros(3), np.zeros((4, 2)), np.full(4, 1.5))
+    # [S-3]'s blend time t + (1 - t) w_j, by hand: 0.5 + 0.5 * (1, 0.5, 0).
     np.testing.assert_allclose(sampler.blend_time(0.5, w), [1.0, 0.75, 0.5])
-    np.testing.assert_allclose(np.asarray(jsampler.blend_time(0.5, np.array(w))), [1.0, 0.75, 0.5])
 
 
 def test_naive_method_rejects_delays_the_executor_cannot_run():
     """X-1, N-7: naive ignores d, yet a delay outside [0, min(s, H - s)] or an s outside [1, H] is rejected."""
-    from softrtc.jax import methods as jmethods
     from softrtc.reference import methods as rmethods
 
     field = ReferenceVelocityField.init(0, 8, 2, 3)
-    obs, noise = np.zeros((1, 3), np.float32), np.zeros((1, 8, 2), np.float32)
-    calls = {
-        "reference": lambda s, d: rmethods.generate_chunk("naive", field, obs[0], noise[0], noise[0], s, d, 2),
-        "jax": lambda s, d: jmethods.generate_chunk("naive", lambda o, x, t: x, obs, noise, noise, s, d, 2),
-        "jax conditioned": lambda s, d: jmethods.generate_chunk_conditioned("naive", None, obs, noise, noise,
-                                                                            s, d, 2),
-    }
-    for name, call in calls.items():
-        with pytest.raises(ValueError, match=r"^d must be an integer in \[0, 4\], got 5"):
-            call(4, 5)
-        with pytest.raises(ValueError, match=r"^s must be an integer in \[1, 8\], got 9"):
-            call(9, 0)
-    assert rmethods.generate_chunk("naive", field, obs[0], noise[0], noise[0], 4, 4, 2).shape == (8, 2)
+    obs, noise = np.zeros(3), np.zeros((8, 2))
+    call = lambda s, d: rmethods.generate_chunk("naive", field, obs, noise, noise, s, d, 2)  # noqa: E731
+    with pytest.raises(ValueError, match=r"^d must be an integer in \[0, 4\], got 5"):
+        call(4, 5)
+    with pytest.raises(ValueError, match=r"^s must be an integer in \[1, 8\], got 9"):
+        call(9, 0)
+    assert call(4, 4).shape == (8, 2)
 
 
 def test_arrays_of_non_real_dtype_rejected():
@@ -230,8 +190,7 @@ def test_arrays_of_non_real_dtype_rejected():
 
 
 def test_velocity_field_output_is_checked():
-    """N-7: a field returning the wrong shape or NaN is an error in every reference sampler,
-    and a wrong shape is an error in the JAX twin (not broadcast)."""
+    """N-7: a field returning the wrong shape or NaN is an error in every reference sampler."""
     rng = np.random.default_rng(0)
     obs, x, y = rng.standard_normal(3), rng.standard_normal((4, 2)), rng.standard_normal((4, 2))
     w = np.array([1.0, 0.5, 0.0, 0.0])
@@ -253,28 +212,14 @@ def test_velocity_field_output_is_checked():
     with pytest.raises(ValueError, match="field.vjp must return"):
         guidance.guided_sample(BadVJP(), obs, x, y, w, 2)
 
-    from softrtc.jax import guidance as JG
-    from softrtc.jax import sampler as JS
-
-    bo, bx, by = obs[None], x[None], y[None]
-    jbad = lambda o, x, t: x[..., :1]  # noqa: E731
-    for call in (lambda: JS.naive_sample(jbad, bo, bx, 2), lambda: JS.rtc_sample(jbad, bo, bx, by, w, 2),
-                 lambda: JG.guided_sample(jbad, bo, bx, by, w, 2)):
-        with pytest.raises(ValueError, match="velocity_fn must return"):
-            call()
-
 
 def test_implementation_ranges():
     """N-12, D-3, M-1, M-5: the stated bounds are where inputs become errors, in the reference
-    and (for delays) in the JAX twin; a table cannot draw a delay above 4096."""
-    from softrtc.jax import delays as JD
-
+    a table cannot draw a delay above 4096."""
     p = np.array([0.5, 0.5])
     assert delays.sample_delay(p, 4095, 0.9) == 4096
-    assert int(JD.sample_delay(p, 4095, 0.9)) == 4096
-    for mod in (delays, JD):
-        with pytest.raises(ValueError, match="d_min must be an integer in \\[0, 4095\\]"):
-            mod.sample_delay(p, 4096, 0.9)
+    with pytest.raises(ValueError, match="d_min must be an integer in \\[0, 4095\\]"):
+        delays.sample_delay(p, 4096, 0.9)
     with pytest.raises(ValueError, match="num_steps"):
         sampler.euler_times(65537)
     assert sampler.euler_times(65536).size == 65536

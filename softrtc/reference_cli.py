@@ -6,14 +6,14 @@ import json
 
 import numpy as np
 
-from .._cli_util import command_error, int_in, real_in
-from . import endpoints, metrics
-from .endpoints import delay_scaled, fixed, hard, offset
-from .executor import execute_chunks
-from .guidance import guidance_prefix_weights
-from .sampler import naive_sample, rtc_sample
-from .velocity import ReferenceVelocityField
-from .weights import SoftWindow, hard_weights, prefix_weights, soft_weights
+from ._cli_util import command_error, int_in, real_in
+from .reference import endpoints, metrics
+from .reference.endpoints import delay_scaled, fixed, hard, offset
+from .reference.executor import execute_chunks
+from .reference.guidance import guidance_prefix_weights
+from .reference.sampler import naive_sample, rtc_sample
+from .reference.velocity import ReferenceVelocityField
+from .reference.weights import SoftWindow, hard_weights, prefix_weights, soft_weights
 
 
 # Options each rule uses, with their defaults; an option given for a rule that ignores it is an error.
@@ -39,13 +39,13 @@ def _rule_from_args(args):
 
 def weights_table(H: int, s: int, window: SoftWindow, delays=None) -> str:
     """Text table of the soft weights for each delay ([W-7])."""
-    from ._validate import check_horizon, check_int
+    from .reference._validate import check_horizon, check_int
     H = check_horizon(H)
     s = check_int("s", s, 1, H)
     delays = range(0, min(s, H - s) + 1) if delays is None else delays
     lines = [f"H={H} s={s} window={json.dumps(window.to_dict())}",
              ("d  e(d) e* | " + " ".join(f"j={j:<3d}" for j in range(H))).rstrip()]
-    from .weights import effective_endpoint
+    from .reference.weights import effective_endpoint
     for d in delays:
         e = endpoints.endpoint(window.rule, d)
         es = effective_endpoint(H, d, min(e, H), s, window.overflow)
@@ -77,7 +77,7 @@ def demo() -> int:
     rng = np.random.default_rng(0)
     obs, noise = rng.standard_normal(4), rng.standard_normal((8, 2))
     prev = naive_sample(field, obs, rng.standard_normal((8, 2)), 5)
-    from .executor import shift_prior
+    from .reference.executor import shift_prior
     y = shift_prior(prev, 4)
     naive = naive_sample(field, obs, noise, 5)
     same = rtc_sample(field, obs, noise, y, np.zeros(8), 5)

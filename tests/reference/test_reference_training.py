@@ -49,21 +49,13 @@ def test_cdf_last_entry_is_exactly_one():
     """D-3, D-2: the last CDF entry is 1 exactly, so u just below 1 still draws d_max (the plain
     cumulative sum of six sixths ends at 0.9999999999999999 and would draw d_max + 1); decay is
     checked even where the uniform table ignores it."""
-    import jax.numpy as jnp
-
-    from softrtc.jax import delays as JD
-
     p = D.delay_probs("uniform", 0, 5)
     assert np.cumsum(p)[-1] < 1.0 and D.delay_cdf(p)[-1] == 1.0
     u = float(np.nextafter(1.0, 0.0))
     assert D.sample_delay(p, 0, u) == 5
-    pj = JD.delay_probs("uniform", 0, 11)  # in float32 twelve twelfths sum to 0.99999988
-    assert float(jnp.cumsum(pj)[-1]) < 1.0 and float(JD.delay_cdf(pj)[-1]) == 1.0
-    assert int(JD.sample_delay(pj, 0, jnp.float32(np.nextafter(np.float32(1), np.float32(0))))) == 11
-    for mod in (D, JD):
-        for bad in (float("nan"), -5.0, 65.0):
-            with pytest.raises(ValueError, match="decay"):
-                mod.delay_probs("uniform", 0, 3, decay=bad)
+    for bad in (float("nan"), -5.0, 65.0):
+        with pytest.raises(ValueError, match="decay"):
+            D.delay_probs("uniform", 0, 3, decay=bad)
 
 
 def test_sampling_frequencies_match_table():

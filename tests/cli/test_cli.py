@@ -10,7 +10,7 @@ import pytest
 from softrtc import _cli_util as cu
 from softrtc.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def status(argv):
@@ -130,7 +130,7 @@ def test_groups_without_a_subcommand_print_help_and_exit_2(capsys):
 def test_library_errors_become_one_line(monkeypatch, capsys):
     """N-11: a ValueError or OSError from a command ends as `softrtc CMD: error: ...`, status 2, no traceback;
     SOFTRTC_TRACEBACK=1 shows the traceback."""
-    import softrtc.reference.cli as rcli
+    import softrtc.reference_cli as rcli
 
     def boom():
         raise OSError("disk full")
@@ -258,3 +258,16 @@ def test_shared_output_helpers(tmp_path):
     assert f.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["afile", "o"]
     write_atomic(f, lambda fh: fh.write("new"))
     assert f.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["afile", "o"]
+
+
+def test_cli_stops_quietly_when_its_reader_goes_away():
+    """N-11: `softrtc examples | head -1` must not end in a traceback: a closed stdout exits with 128 + SIGPIPE.
+
+    The read end is closed before the child has imported anything, so its first write meets a closed pipe.
+    """
+    proc = subprocess.Popen([sys.executable, "-m", "softrtc.cli", "examples"], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err

@@ -24,9 +24,9 @@ from softrtc.kinetix import data as kdata  # noqa: E402
 from softrtc.kinetix import env as kenv  # noqa: E402
 from softrtc.kinetix import finetune as kft  # noqa: E402
 from softrtc.kinetix import harness as H  # noqa: E402
-from conftest import SHARED_LEVELS_REASON  # noqa: E402
+from tests.conftest import SHARED_LEVELS_REASON  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 LEVELS_DIR = (ROOT.parent / "shared" / "kinetix-levels").resolve()
 needs_levels = pytest.mark.skipif(not LEVELS_DIR.is_dir(), reason=SHARED_LEVELS_REASON)
 

@@ -8,7 +8,18 @@
 Importing this package imports only the standard library and NumPy.
 """
 
+from pathlib import Path
+
+from .._files import package_data_dir
+
 FORMAT_VERSION = "1.0"
 SPEC_VERSION = "0.1.0"
 
-__all__ = ["FORMAT_VERSION", "SPEC_VERSION"]
+
+def vectors_dir() -> Path:
+    """The shipped vector directory ([CF-1]): package data of ``softrtc.conformance``, found through
+    ``importlib.resources`` so that an installed wheel finds it wherever it lies."""
+    return package_data_dir(__name__, "vectors")
+
+
+__all__ = ["FORMAT_VERSION", "SPEC_VERSION", "vectors_dir"]

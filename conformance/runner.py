@@ -29,11 +29,10 @@ import numpy as np
 
 from .._cli_util import command_error, comma_list, input_dir, output_file
 from .._files import write_atomic
-from . import FORMAT_VERSION
+from . import FORMAT_VERSION, vectors_dir
 from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, _describe, _fatal,
                       load_adapter, supported_functions)
 
-DEFAULT_VECTORS = Path(__file__).resolve().parents[2] / "conformance" / "vectors"
 
 # Arguments that are arrays in the interface ([CF-7]); everything else is passed as parsed from JSON ([CF-23]).
 FLOAT_ARRAYS = {"actions", "noise", "weights", "pred", "preds", "obs", "x", "cotangent", "prior", "prev", "chunks",
@@ -126,7 +125,7 @@ def parse_json(text: str):
 def load_vectors(directory=None) -> list[dict]:
     """Read every vector file of ``directory`` (index.json excluded), checking format_version ([CF-2])
     and the structure of every case ([CF-24]); raise VectorError naming the first problem."""
-    d = _path("directory", directory) if directory is not None else DEFAULT_VECTORS
+    d = _path("directory", directory) if directory is not None else vectors_dir()
     if not d.is_dir():
         raise VectorError(f"vectors directory {d} {'is not a directory' if d.exists() else 'does not exist'}")
     files = sorted(p for p in d.glob("*.json") if p.name != "index.json")
@@ -632,7 +631,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="built-in adapter (reference, jax, torch, torch-flipped), module[:ATTR] "
                              "or path/file.py[:ATTR]")
     parser.add_argument("--vectors", type=input_dir(), default=None,
-                        help=f"vector directory (default: {DEFAULT_VECTORS})")
+                        help="vector directory (default: the vectors shipped with softrtc)")
     parser.add_argument("--report", type=output_file(), default=None, help="write a JSON report to this file")
     parser.add_argument("--junit", type=output_file(), default=None, help="write JUnit XML to this file")
     parser.add_argument("--only", type=comma_list("value", _interface_function), default=None,

@@ -24,13 +24,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 TIME_CONVENTIONS = ("data_at_1", "noise_at_1")
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 BUILTIN = {
     "reference": "softrtc.conformance.adapters.reference:ADAPTER",
     "jax": "softrtc.conformance.adapters.jax:ADAPTER",
-    "torch": str(REPO_ROOT / "conformance" / "torch_port" / "adapter.py") + ":ADAPTER",
-    "torch-flipped": str(REPO_ROOT / "conformance" / "torch_port" / "adapter_flipped.py") + ":ADAPTER",
+    "torch": "softrtc.conformance.torch_port.adapter:ADAPTER",
+    "torch-flipped": "softrtc.conformance.torch_port.adapter_flipped:ADAPTER",
 }
 
 
