@@ -28,8 +28,8 @@ TIME_CONVENTIONS = ("data_at_1", "noise_at_1")
 BUILTIN = {
     "reference": "softrtc.conformance.adapters.reference:ADAPTER",
     "jax": "softrtc.conformance.adapters.jax:ADAPTER",
-    "torch": "softrtc.conformance.torch_port.adapter:ADAPTER",
-    "torch-flipped": "softrtc.conformance.torch_port.adapter_flipped:ADAPTER",
+    "torch": "softrtc.conformance.adapters.torch:ADAPTER",
+    "torch-flipped": "softrtc.conformance.adapters.torch_flipped:ADAPTER",
 }
 
 
@@ -85,6 +85,37 @@ INTERFACE: dict[str, Fn] = {
     "bootstrap_interval": Fn(("values", "indices", "confidence"), ("interval",)),
     "standard_error": Fn(("values",), ("value",)),
 }
+
+# Alternative forms of an interface function ([CF-27]): an adapter may provide the
+# alternative instead of the function, or both (the function is tried first, the
+# alternative when it is absent or raises NotImplementedError for the case). The
+# alternative takes the case argument named by ``needs`` in place of others; a case
+# without that argument cannot be run through it.
+@dataclass(frozen=True)
+class AltForm:
+    name: str
+    fn: Fn
+    needs: str
+
+
+GUIDANCE_KEYS = ("H", "s", "d", "variant", "schedule", "end", "max_guidance")
+ALTERNATES: dict[str, AltForm] = {
+    "guided_sample": AltForm("guided_sample_window",
+                             Fn(("field", "obs", "noise", "prior", "guidance", "T"), _S, "sample"), "guidance"),
+}
+
+
+def forms(adapter, fname: str) -> list[tuple[str, Fn, str | None]]:
+    """The adapter's callable forms of interface function ``fname``, in the order they are tried:
+    ``(attribute name, Fn, needed case argument or None)`` ([CF-9], [CF-27])."""
+    out = []
+    if callable(getattr(adapter, fname, None)):
+        out.append((fname, INTERFACE[fname], None))
+    alt = ALTERNATES.get(fname)
+    if alt is not None and callable(getattr(adapter, alt.name, None)):
+        out.append((alt.name, alt.fn, alt.needs))
+    return out
+
 
 # Keys of a sampler trace step that are flow times or velocities ([V-1]); the
 # guidance pull-back "vjp" is taken through the denoiser x1, which both
@@ -196,7 +227,7 @@ def check_adapter(adapter) -> None:
     tc = getattr(adapter, "time_convention", "data_at_1")
     if tc not in TIME_CONVENTIONS:
         raise AdapterError(f"adapter.time_convention must be one of {TIME_CONVENTIONS}, got {tc!r}")
-    for fname in INTERFACE:
+    for fname in list(INTERFACE) + [a.name for a in ALTERNATES.values()]:
         fn = getattr(adapter, fname, None)
         if fn is not None and not callable(fn):
             raise AdapterError(f"adapter.{fname} must be callable or absent, got {type(fn).__name__}")
@@ -206,8 +237,8 @@ def check_adapter(adapter) -> None:
 
 
 def supported_functions(adapter) -> list[str]:
-    """Interface functions the adapter provides ([CF-9])."""
-    return [f for f in INTERFACE if callable(getattr(adapter, f, None))]
+    """Interface functions the adapter provides, itself or through an alternative form ([CF-9], [CF-27])."""
+    return [f for f in INTERFACE if forms(adapter, f)]
 
 
 def _first_line(exc: BaseException) -> str:

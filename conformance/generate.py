@@ -390,6 +390,13 @@ def gen_sampler() -> tuple[_Cases, dict]:
     return c, {"fields": _field_header()}
 
 
+def _guidance(H: int, s: int, d: int, variant: str, max_guidance: float) -> dict:
+    """The parameters that define a guided case's weights, beside them ([CF-27], [G-1]): the guided window
+    runs from d to end = H - s with the variant's schedule; max_guidance is the cap of [G-4]."""
+    return {"H": H, "s": s, "d": d, "variant": variant, "schedule": guidance.GUIDANCE_SCHEDULES[variant],
+            "end": H - s, "max_guidance": max_guidance}
+
+
 def gen_guidance() -> tuple[_Cases, dict]:
     c = _Cases()
     rng = np.random.default_rng(60)
@@ -418,14 +425,16 @@ def gen_guidance() -> tuple[_Cases, dict]:
                 c.add(f"G.guided_sample.{name}.s{s}.d{d}.T{T}.{variant}", "guided_sample",
                       ["G-1", "G-2", "G-3", "G-4", "G-5", "F-2", "S-6"] + (["G-6"] if not W.any() else []),
                       TOL_TRACE, {"field": name, "obs": obs, "noise": noise, "prior": prior, "weights": W, "T": T,
-                                  "max_guidance": 5.0}, {"chunk": chunk, "trace": _trace(tr)})
+                                  "max_guidance": 5.0, "guidance": _guidance(H, s, d, variant, 5.0)},
+                      {"chunk": chunk, "trace": _trace(tr)})
     f = fields["h8a2"]
     obs, noise = rng.standard_normal(3), rng.standard_normal((8, 2))
     prior = _prior(f, rng, obs, 4)
     W = guidance.guidance_prefix_weights(8, 4, 2, "soft")
     chunk, tr = guidance.guided_sample(f, obs, noise, prior, W, 4, 2.0, return_trace=True)
     c.add("G.guided_sample.h8a2.s4.d2.T4.soft.beta2", "guided_sample", ["G-3", "G-4", "G-5"], TOL_TRACE,
-          {"field": "h8a2", "obs": obs, "noise": noise, "prior": prior, "weights": W, "T": 4, "max_guidance": 2.0},
+          {"field": "h8a2", "obs": obs, "noise": noise, "prior": prior, "weights": W, "T": 4, "max_guidance": 2.0,
+           "guidance": _guidance(8, 4, 2, "soft", 2.0)},
           {"chunk": chunk, "trace": _trace(tr)})
     c.error("G.guidance_weights.reject.d-above-overlap", "guidance_weights", ["G-1", "N-7"],
             {"H": 8, "s": 4, "d": 5, "variant": "soft"})

@@ -30,8 +30,8 @@ import numpy as np
 from .._cli_util import command_error, comma_list, input_dir, output_file
 from .._files import write_atomic
 from . import FORMAT_VERSION, vectors_dir
-from .adapter import (INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, _describe, _fatal,
-                      load_adapter, supported_functions)
+from .adapter import (ALTERNATES, GUIDANCE_KEYS, INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn,
+                      _describe, _fatal, forms, load_adapter, supported_functions)
 
 
 # Arguments that are arrays in the interface ([CF-7]); everything else is passed as parsed from JSON ([CF-23]).
@@ -97,6 +97,7 @@ def _req_key(rid: str):
 
 
 TRACE_NOT_PROVIDED = "trace not provided; chunk checked only"
+UNSUPPORTED_CASE = "unsupported case"
 
 
 class VectorError(Exception):
@@ -245,9 +246,24 @@ def _check_case_shape(file: str, i: int, case, fields: dict) -> None:
     missing = [k for k in fn.outputs if k not in exp]
     if missing:
         raise VectorError(f"{where}: 'expected' lacks outputs {missing} of {case['function']}")
+    _check_guidance(where, case)
     if "trace" in fn.outputs and not (isinstance(exp["trace"], list)
                                       and all(isinstance(st, dict) for st in exp["trace"])):
         raise VectorError(f"{where}: expected 'trace' must be a list of per-step objects")
+
+
+def _check_guidance(where: str, case: dict) -> None:
+    """A guided case's optional 'guidance' argument: the parameters that define its weights ([CF-27])."""
+    if case["function"] not in ALTERNATES or ALTERNATES[case["function"]].needs not in case["args"]:
+        return
+    g = case["args"][ALTERNATES[case["function"]].needs]
+    if not isinstance(g, dict) or sorted(g) != sorted(GUIDANCE_KEYS):
+        raise VectorError(f"{where}: 'guidance' must be an object with exactly the keys {list(GUIDANCE_KEYS)}")
+    ints = all(isinstance(g[k], int) and not isinstance(g[k], bool) for k in ("H", "s", "d", "end"))
+    if not ints or not all(isinstance(g[k], str) for k in ("variant", "schedule")) \
+            or isinstance(g["max_guidance"], bool) or not isinstance(g["max_guidance"], (int, float)):
+        raise VectorError(f"{where}: 'guidance' holds integers H, s, d, end, strings variant, schedule and a "
+                          "number max_guidance")
 
 
 # ---------------------------------------------------------------- calling
@@ -304,6 +320,10 @@ def build_args(fn: Fn, case: dict, data: dict, flipped: bool) -> list:
             v = -v
         args.append(v)
     return args
+
+
+class CaseUnsupported(Exception):
+    """The implementation declined the case (NotImplementedError, or "unsupported" over the protocol) ([CF-26])."""
 
 
 class CaseFailure(Exception):
@@ -470,29 +490,47 @@ def _where(exc: BaseException) -> str:
     return f" ({Path(f.filename).name}:{f.lineno})"
 
 
-def run_case(adapter, fname: str, fn: Fn, case: dict, data: dict, flipped: bool) -> tuple[float, str]:
-    func = getattr(adapter, fname)
-    args = build_args(fn, case, data, flipped)
-    expected = case["expected"]
-    if "error" in expected:
+def run_case(adapter, fname: str, fn: Fn, case: dict, data: dict, flipped: bool,
+             sig_problems: dict | None = None) -> tuple[float, str]:
+    """Run one case through the adapter's forms of ``fname`` in turn ([CF-27]); a form raising
+    NotImplementedError passes the case on to the next, and a case no form takes is unsupported ([CF-26])."""
+    declined = []
+    for attr, form_fn, needs in forms(adapter, fname) or [(fname, fn, None)]:
+        if needs is not None and needs not in case["args"]:
+            declined.append(f"{attr} needs the case's '{needs}', which it does not carry")
+            continue
+        if sig_problems and sig_problems.get(attr):
+            raise CaseFailure(sig_problems[attr])
         try:
-            func(*args)
-        except ValueError:
-            return 0.0, ""
-        except BaseException as exc:  # SystemExit and the like fail the case too ([CF-18])
-            if _fatal(exc):
-                raise
-            raise CaseFailure(f"invalid input must raise ValueError, {fname} raised {_describe(exc)}"
-                              f"{_where(exc)}") from None
-        raise CaseFailure(f"{fname} accepted invalid input (expected ValueError, [N-7])")
+            return _run_form(adapter, attr, form_fn, fn, case, data, flipped)
+        except CaseUnsupported as exc:
+            declined.append(str(exc))
+    raise CaseUnsupported("; ".join(declined))
+
+
+def _run_form(adapter, attr: str, form_fn: Fn, fn: Fn, case: dict, data: dict, flipped: bool) -> tuple[float, str]:
+    func = getattr(adapter, attr)
+    args = build_args(form_fn, case, data, flipped)
+    expected = case["expected"]
     try:
         out = func(*args)
-    except BaseException as exc:
+    except NotImplementedError as exc:
+        raise CaseUnsupported(f"{attr} raised {_describe(exc)}") from None
+    except ValueError as exc:
+        if "error" in expected:
+            return 0.0, ""
+        raise CaseFailure(f"{attr} raised {_describe(exc)}{_where(exc)}") from None
+    except BaseException as exc:  # SystemExit and the like fail the case too ([CF-18])
         if _fatal(exc):
             raise
-        raise CaseFailure(f"{fname} raised {_describe(exc)}{_where(exc)}") from None
-    got = _normalize(fn, fname, out, adapter, flipped)
-    return check_outputs(fn, fname, got, expected, case["tolerance"])
+        if "error" in expected:
+            raise CaseFailure(f"invalid input must raise ValueError, {attr} raised {_describe(exc)}"
+                              f"{_where(exc)}") from None
+        raise CaseFailure(f"{attr} raised {_describe(exc)}{_where(exc)}") from None
+    if "error" in expected:
+        raise CaseFailure(f"{attr} accepted invalid input (expected ValueError, [N-7])")
+    got = _normalize(fn, attr, out, adapter, flipped)
+    return check_outputs(fn, attr, got, expected, case["tolerance"])
 
 
 def run(impl, vectors_dir=None, only=None, files=None) -> RunResult:
@@ -520,7 +558,8 @@ def run(impl, vectors_dir=None, only=None, files=None) -> RunResult:
     files = load_vectors(vectors_dir) if files is None else files
     flipped = getattr(adapter, "time_convention", "data_at_1") == "noise_at_1"
     supported = set(supported_functions(adapter))
-    sig_problems = {f: _signature_problem(getattr(adapter, f), f, INTERFACE[f]) for f in supported}
+    sig_problems = {attr: _signature_problem(getattr(adapter, attr), attr, form_fn)
+                    for f in supported for attr, form_fn, _ in forms(adapter, f)}
     result = RunResult(impl_name, adapter.name, "noise_at_1" if flipped else "data_at_1", FORMAT_VERSION,
                        sorted({str(d.get("spec_version")) for d in files}))
     for data in files:
@@ -533,12 +572,13 @@ def run(impl, vectors_dir=None, only=None, files=None) -> RunResult:
                 raise VectorError(f"{data['_file']}: case {cr.id!r} names unknown interface function {fname!r}")
             if fname not in supported:
                 cr.status, cr.message = "unsupported", f"adapter has no {fname}"
-            elif sig_problems.get(fname):
-                cr.status, cr.message, cr.worst = "fail", sig_problems[fname], math.inf
             else:
                 c0 = time.perf_counter()
                 try:
-                    cr.worst, cr.message = run_case(adapter, fname, INTERFACE[fname], case, data, flipped)
+                    cr.worst, cr.message = run_case(adapter, fname, INTERFACE[fname], case, data, flipped,
+                                                    sig_problems)
+                except CaseUnsupported as exc:
+                    cr.status, cr.message = "unsupported", f"{UNSUPPORTED_CASE}: {exc}"
                 except CaseFailure as exc:
                     cr.status, cr.message, cr.worst = "fail", str(exc), exc.ratio
                 except VectorError:
@@ -566,12 +606,20 @@ def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> s
         lines.append(f"  {e['status']:<11s} {rid:<6s} {worst:<20s} {n:>5d} cases{extra}"
                      + (f" ({e['fail']} failed)" if e["fail"] else ""))
     uns: dict[str, int] = {}
+    declined: dict[str, int] = {}
     for c in res.cases:
-        if c.status == "unsupported":
+        if c.status == "unsupported" and c.message.startswith(UNSUPPORTED_CASE):
+            for r in c.requirements:
+                declined[r] = declined.get(r, 0) + 1
+        elif c.status == "unsupported":
             uns[c.function] = uns.get(c.function, 0) + 1
     if uns:
         lines.append("unsupported (adapter lacks the function): "
                      + ", ".join(f"{f} ({n} cases)" for f, n in sorted(uns.items())))
+    if declined:  # [CF-26]
+        lines.append("unsupported cases (the implementation raised NotImplementedError, or no form of the function "
+                     "takes the case), per requirement: "
+                     + ", ".join(f"{r} ({n})" for r, n in sorted(declined.items(), key=lambda kv: _req_key(kv[0]))))
     untraced = sum(1 for c in res.cases if c.status == "pass" and c.message == TRACE_NOT_PROVIDED)
     if untraced:
         lines.append(f"{untraced} sampler cases passed without a trace: their chunks are checked, their per-step "

@@ -31,6 +31,19 @@ def window_from_dict(window) -> weights.SoftWindow:
                               window.get("parametrization", "rtc"), window.get("overflow", "clip"))
 
 
+def guidance_weights_from_dict(g) -> np.ndarray:
+    """W of [G-1] from a guided case's 'guidance' dict {H, s, d, variant, schedule, end, max_guidance}
+    ([CF-27]); the schedule and the window's end must be the ones the variant and H - s give."""
+    keys = ("H", "s", "d", "variant", "schedule", "end", "max_guidance")
+    if not isinstance(g, dict) or sorted(g) != sorted(keys):
+        raise ValueError(f"guidance must be a dict with keys {keys}")
+    W = guidance.guidance_prefix_weights(g["H"], g["s"], g["d"], g["variant"])
+    if g["schedule"] != guidance.GUIDANCE_SCHEDULES[g["variant"]] or g["end"] != g["H"] - g["s"]:
+        raise ValueError(f"guidance schedule {g['schedule']!r} and end {g['end']!r} must be "
+                         f"{guidance.GUIDANCE_SCHEDULES[g['variant']]!r} and H - s = {g['H'] - g['s']}")
+    return W
+
+
 class ReferenceAdapter:
     """Every interface function, backed by softrtc.reference."""
 
@@ -89,6 +102,12 @@ class ReferenceAdapter:
     def guided_sample(self, field, obs, noise, prior, w, T, max_guidance):
         return guidance.guided_sample(velocity.ReferenceVelocityField(field), obs, noise, prior, w, T, max_guidance,
                                       return_trace=True)
+
+    def guided_sample_window(self, field, obs, noise, prior, guidance_, T):
+        """The guided sampler with W built from the case's window parameters ([CF-27], [G-1])."""
+        W = guidance_weights_from_dict(guidance_)
+        return guidance.guided_sample(velocity.ReferenceVelocityField(field), obs, noise, prior, W, T,
+                                      guidance_["max_guidance"], return_trace=True)
 
     def method_weights(self, method, H, s, d, window):
         return methods.method_weights(method, H, s, d, None if window is None else window_from_dict(window))
