@@ -51,7 +51,7 @@ def test_reference_adapter_passes_everything(vector_files):
 @pytest.mark.skipif(not HAS_TORCH, reason="torch not installed")
 @pytest.mark.parametrize("impl", ["torch", "torch-flipped"])
 def test_torch_adapters_pass(impl, vector_files):
-    """[CF-21], [CF-10], [CF-9], [CF-17] The float32 PyTorch port passes in both time conventions
+    """[CF-21], [CF-10], [CF-9], [CF-17] The float32 adapters on softrtc.torch pass in both time conventions
     (V-1, V-3 through the runner's mapping) with no case unsupported: every interface function of
     [CF-7] is ported, the delay tables and draws ([D-1], [D-2], [D-3]), per-token times ([C-1]),
     the field's VJP by autograd ([F-2]), method weights ([S-6]), the shifted prior and executor
@@ -69,17 +69,20 @@ def test_torch_adapters_pass(impl, vector_files):
 
 @pytest.mark.skipif(not HAS_TORCH, reason="torch not installed")
 def test_torch_adapter_by_path_and_module():
-    """[CF-12], [CF-7] Adapters load by built-in name, by file path with :ATTR and by module:ATTR; a file
+    """[CF-12], [CF-7], [CF-21] Adapters load by built-in name, by file path with :ATTR and by module:ATTR; a file
     inside a package keeps its relative imports; by module name, the flipped adapter's relative import of
-    .adapter gives the very module the `torch` built-in loads."""
-    a = load_adapter(str(ROOT / "conformance" / "torch_port" / "adapter_flipped.py") + ":ADAPTER")
+    .torch gives the very module the `torch` built-in loads; both are built on softrtc.torch."""
+    a = load_adapter(str(ROOT / "conformance" / "adapters" / "torch_flipped.py") + ":ADAPTER")
     assert a.name == "torch-flipped" and a.time_convention == "noise_at_1"
     plain = load_adapter("torch")
-    b = load_adapter("softrtc.conformance.torch_port.adapter_flipped:ADAPTER")
-    assert isinstance(b, type(plain)) and type(plain).__module__ == "softrtc.conformance.torch_port.adapter"
+    b = load_adapter("softrtc.conformance.adapters.torch_flipped:ADAPTER")
+    assert isinstance(b, type(plain)) and type(plain).__module__ == "softrtc.conformance.adapters.torch"
     assert type(a).__bases__[0].__name__ == type(plain).__name__
     assert load_adapter("softrtc.conformance.adapters.reference:ADAPTER").name == "reference"
     assert load_adapter("softrtc.conformance.adapters.reference").name == "reference"
+    import softrtc.conformance.adapters.torch as torch_adapter
+    import softrtc.torch.weights
+    assert torch_adapter.weights is softrtc.torch.weights
 
 
 JAX_QUICK = {"delay_probs", "loss", "velocity", "velocity_vjp", "rtc_sample", "standard_error"}

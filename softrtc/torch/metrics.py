@@ -1,4 +1,4 @@
-"""Metrics on an executed action sequence a_0 .. a_{N-1} (spec chapter M)."""
+"""Metrics on an executed action sequence a_0 .. a_{N-1} in PyTorch (spec chapter M, 05-metrics.md)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import math
 
 import torch
 
-from .checks import DTYPE, int_tensor, integer, real, tensor
+from ._validate import int_tensor, integer, real
+from ._validate import real_tensor as tensor
 
 MAX_ORDER = 16  # [N-12]
 MAX_RESAMPLES = 10**7
@@ -35,7 +36,7 @@ def action_jerk(actions) -> torch.Tensor:
 def boundary_jump(actions, chunk_index) -> torch.Tensor:
     """Mean || a_t - a_{t-1} ||_2 over the steps t >= 1 whose chunk differs from step t - 1's ([M-3])."""
     a = tensor("actions", actions, ndim=2)
-    ci = int_tensor("chunk_index", chunk_index, shape=(a.shape[0],))
+    ci = int_tensor("chunk_index", chunk_index, expected=(a.shape[0],))
     switch = ci[1:] != ci[:-1]
     if not switch.any():
         raise ValueError("chunk_index has no chunk switch; the boundary jump needs at least one")
@@ -51,12 +52,12 @@ def bootstrap_interval(values, indices, confidence: float = 0.95) -> tuple[float
     n = v.shape[0]
     if not 1 <= n <= MAX_VALUES:
         raise ValueError(f"values must hold between 1 and {MAX_VALUES} entries, got {n}")
-    idx = int_tensor("indices", indices, shape=(None, n), lo=0, hi=n - 1)
+    idx = int_tensor("indices", indices, expected=(None, n), lo=0, hi=n - 1)
     if not 1 <= idx.shape[0] <= MAX_RESAMPLES:
         raise ValueError(f"indices must hold between 1 and {MAX_RESAMPLES} resamples (rows), got {idx.shape[0]}")
     c = real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
     means = v[idx].mean(dim=1)
-    q = torch.tensor([(1.0 - c) / 2.0, (1.0 + c) / 2.0], dtype=DTYPE)
+    q = torch.tensor([(1.0 - c) / 2.0, (1.0 + c) / 2.0], dtype=means.dtype)
     lo, hi = torch.quantile(means, q, interpolation="linear").tolist()
     return lo, hi
 
