@@ -73,7 +73,8 @@ def real_array(name: str, value, kinds: str = "iuf") -> np.ndarray:
     array (which NumPy would convert, or drop an imaginary part of) raise
     ValueError naming ``name``.
     """
-    want = "a real numeric array (integer or float)" if kinds == "iuf" else f"an array of dtype kind {kinds!r}"
+    want = {"iuf": "a real numeric array (integer or float)", "iu": "an integer array",
+            "b": "a boolean array"}.get(kinds, f"an array of dtype kind {kinds!r}")
     if value is None or isinstance(value, (str, bytes)):
         raise ValueError(f"{name} must be {want}, got {type(value).__name__}")
     try:

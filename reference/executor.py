@@ -17,6 +17,8 @@ frame, zero-padded past the overlap ([X-3]):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from ._validate import check_array, check_horizon, check_int
@@ -31,8 +33,14 @@ def check_delay(H: int, s: int, d: int) -> int:
 
 def _delays(delays, C: int, H: int, s: int) -> list:
     """The delays of C chunks: delays[0] = 0 ([X-2]), every later one executable ([X-1], [X-5])."""
-    if isinstance(delays, (str, bytes)) or not hasattr(delays, "__iter__"):
-        raise ValueError(f"delays must be a sequence of {C} integers (one per chunk), got {type(delays).__name__}")
+    # An ordered sequence only: a dict would be read by its keys and a set in hash order ([N-7]).
+    if hasattr(delays, "__array__") and not isinstance(delays, (str, bytes)):  # NumPy (or other) arrays
+        if np.ndim(delays) != 1:
+            raise ValueError(f"delays must be a sequence of {C} integers (one per chunk), got an array of shape "
+                             f"{list(np.shape(delays))}")
+    elif isinstance(delays, (str, bytes)) or not isinstance(delays, Sequence):
+        raise ValueError(f"delays must be a sequence of {C} integers (one per chunk; a list, tuple or 1-D array), "
+                         f"got {type(delays).__name__}")
     ds = list(delays)
     if len(ds) != C:
         raise ValueError(f"delays must have one entry per chunk ({C}), got {len(ds)}")
@@ -104,8 +112,10 @@ def closed_loop(generate, env_step, obs0, num_chunks: int, H: int, s: int, delay
         prior = None if prev is None else shift_prior(prev, s)
         request_obs.append(np.asarray(obs))
         new = check_array(f"chunk {c} returned by generate", generate(obs, prior, d, c), ndim=2)
-        if new.shape[0] != H:
-            raise ValueError(f"generate must return chunks of shape [H={H}, A], got {list(new.shape)}")
+        # Every chunk has the first one's A: checked here, so the error names generate, not segment's argument.
+        want = f"[H={H}, A]" if prev is None else f"[H={H}, A={prev.shape[1]}]"
+        if new.shape[0] != H or (prev is not None and new.shape[1] != prev.shape[1]):
+            raise ValueError(f"generate must return chunks of shape {want}, got {list(new.shape)} for chunk {c}")
         seg = new[:s] if prev is None else segment(prev, new, s, d)
         for a in seg:
             executed.append(a)

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from ._validate import check_array, check_bool, check_choice, check_horizon, check_int, check_real
-from .sampler import euler_times, field_output
+from .sampler import euler_times, field_dims, field_output
 from .weights import check_weights, prefix_weights
 
 MAX_GUIDANCE = 5.0
@@ -56,6 +56,7 @@ def guided_sample(field, obs, noise, prior, weights, num_steps: int,
         raise ValueError("field must be callable and provide field.vjp(obs, x, t, cotangent)")
     x = check_array("noise", noise, ndim=2)
     obs = check_array("obs", obs, ndim=1)
+    field_dims(field, obs, x)
     return_trace = check_bool("return_trace", return_trace)
     y = check_array("prior", prior, shape=x.shape)
     w = check_weights("weights", weights, x.shape[0])[:, None]

@@ -13,13 +13,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_int, check_real
+from ._validate import check_array, check_int, check_real, real_array
 from .delays import MAX_DELAY
 
 HIGH_DELAYS = (3, 4)
 # [N-12] Bootstrap bounds: resamples B and values n per resample.
 MAX_RESAMPLES = 10**7
 MAX_VALUES = 10**7
+# [N-12] Entries of one resample matrix B * n: 10^8 int64 values are 800 MB (10^7 by 10^7 would be 800 TB).
+MAX_ENTRIES = 10**8
 
 
 def finite_differences(actions, order: int) -> np.ndarray:
@@ -48,17 +50,16 @@ def action_jerk(actions) -> float:
 
 def switch_steps(chunk_index) -> np.ndarray:
     """Steps t >= 1 whose action comes from another chunk than step t-1 ([M-3])."""
-    ci = np.asarray(chunk_index)
-    if ci.ndim != 1 or not np.issubdtype(ci.dtype, np.integer) or ci.size == 0:
-        raise ValueError(f"chunk_index must be a non-empty 1-D integer array, got shape {list(ci.shape)} "
-                         f"and dtype {ci.dtype}")
+    ci = real_array("chunk_index", chunk_index, "iu")
+    if ci.ndim != 1 or ci.size == 0:
+        raise ValueError(f"chunk_index must be a non-empty 1-D integer array, got shape {list(ci.shape)}")
     return np.nonzero(ci[1:] != ci[:-1])[0] + 1
 
 
 def boundary_jump(actions, chunk_index) -> float:
     """Mean || a_t - a_{t-1} || over chunk-switch steps t ([M-3])."""
     a = check_array("actions", actions, ndim=2)
-    ci = np.asarray(chunk_index)
+    ci = real_array("chunk_index", chunk_index, "iu")
     if ci.shape != (a.shape[0],):
         raise ValueError(f"chunk_index must have shape [{a.shape[0]}], got {list(ci.shape)}")
     sw = switch_steps(ci)
@@ -69,7 +70,7 @@ def boundary_jump(actions, chunk_index) -> float:
 
 def solve_rate(solved) -> float:
     """Fraction of episodes solved ([M-4])."""
-    s = np.asarray(solved)
+    s = real_array("solved", solved, "b")
     if s.ndim != 1 or s.size == 0 or s.dtype != bool:
         raise ValueError("solved must be a non-empty 1-D boolean array")
     return float(np.mean(s))
@@ -87,6 +88,8 @@ def bootstrap_indices(num_values: int, num_resamples: int, seed: int) -> np.ndar
     """Resample index matrix [B, n] = default_rng(seed).integers(0, n, (B, n)) ([M-5])."""
     n = check_int("num_values", num_values, 1, MAX_VALUES)
     B = check_int("num_resamples", num_resamples, 1, MAX_RESAMPLES)
+    if n * B > MAX_ENTRIES:
+        raise ValueError(f"num_resamples * num_values must be at most {MAX_ENTRIES} ([N-12]), got {B} * {n}")
     seed = check_int("seed", seed, 0)
     return np.random.default_rng(seed).integers(0, n, size=(B, n))
 
@@ -94,7 +97,7 @@ def bootstrap_indices(num_values: int, num_resamples: int, seed: int) -> np.ndar
 def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -> tuple[float, float]:
     """Percentile interval of resampled means ([M-5]), numpy's 'linear' quantiles."""
     v = check_array("values", values, ndim=1)
-    idx = np.asarray(indices)
+    idx = real_array("indices", indices, "iu")
     if idx.ndim != 2 or idx.shape[0] < 1 or idx.shape[1] != v.size or not np.issubdtype(idx.dtype, np.integer) \
             or idx.min() < 0 or idx.max() >= v.size:
         raise ValueError(f"indices must be an integer array [B, {v.size}], B >= 1, with entries in [0, {v.size - 1}]")

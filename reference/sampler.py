@@ -48,11 +48,32 @@ def field_output(name: str, value, shape: tuple) -> np.ndarray:
     return v
 
 
+def field_dims(field, obs: np.ndarray, noise: np.ndarray) -> None:
+    """``noise`` [H, A] and ``obs`` [O] against the sizes the field declares, if any ([N-7]).
+
+    A field with integer ``horizon``, ``action_dim`` or ``obs_dim`` (as
+    :class:`~softrtc.reference.velocity.ReferenceVelocityField`) would reject
+    a mis-shaped state under its own argument name ``x``; checked here, the
+    error names the sampler's argument instead.
+    """
+    def size(attr):
+        v = getattr(field, attr, None)
+        return int(v) if isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_)) else None
+
+    H, A, O = size("horizon"), size("action_dim"), size("obs_dim")
+    if (H is not None and noise.shape[0] != H) or (A is not None and noise.shape[1] != A):
+        raise ValueError(f"noise must have the field's shape [H={'*' if H is None else H}, "
+                         f"A={'*' if A is None else A}], got {list(noise.shape)}")
+    if O is not None and obs.shape[0] != O:
+        raise ValueError(f"obs must have the field's shape [O={O}], got {list(obs.shape)}")
+
+
 def _check_inputs(field, obs, noise):
     if not callable(field):
         raise ValueError("field must be callable as field(obs, x, t) -> velocity [H, A]")
     x0 = check_array("noise", noise, ndim=2)
     obs = check_array("obs", obs, ndim=1)
+    field_dims(field, obs, x0)
     return obs, x0
 
 

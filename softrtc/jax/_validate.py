@@ -96,13 +96,18 @@ def real_dtype(name: str, value, what: str = "be a real numeric array (integer o
 
 def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
           lo: float | None = None, hi: float | None = None, dtype=jnp.float32,
-          allow_empty: bool = False) -> jax.Array:
+          allow_empty: bool = False, hi_open: bool = False) -> jax.Array:
     """A float array argument ([N-7], [N-8]).
 
     ``shape`` may contain ``None`` for a free dimension. The shape is checked
     always (an axis of length 0 is rejected unless ``allow_empty``, [N-1]);
-    finiteness and the range ``[lo, hi]`` only when the value is concrete.
+    finiteness and the range ``[lo, hi]`` (``[lo, hi)`` with ``hi_open``)
+    only when the value is concrete. The range is checked on the caller's
+    values before they are rounded to ``dtype``: rounding must neither pull
+    an out-of-range 1.000000001 into [0, 1] nor push a valid 1 - 1e-12 onto
+    an open bound.
     """
+    raw = None
     if not is_traced(value):
         if isinstance(value, (bool, np.bool_)) or (hasattr(value, "dtype") and value.dtype == bool):
             raise ValueError(f"{name} must be a numeric array, got a boolean")
@@ -112,6 +117,7 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
             raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
         if kind not in "iuf":  # booleans, complex numbers, strings and objects are not real arrays
             raise ValueError(f"{name} must be a real numeric array, got dtype {np.asarray(value).dtype}")
+        raw = np.asarray(value)
         try:
             with np.errstate(over="ignore"):  # a value beyond float32 becomes inf, rejected below
                 value = jnp.asarray(value, dtype)
@@ -128,14 +134,16 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
             raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
     if not allow_empty and 0 in value.shape:
         raise ValueError(f"{name} must have at least one entry along every axis, got shape {list(value.shape)}")
-    if not is_traced(value) and value.size:
-        v = np.asarray(value)
-        if not np.all(np.isfinite(v)):
+    if raw is not None and value.size:
+        with np.errstate(over="ignore"):  # NumPy's rounding, as value may be a tracer inside a jit
+            rounded = raw.astype(np.dtype(dtype))
+        if not (np.all(np.isfinite(raw)) and np.all(np.isfinite(rounded))):
             raise ValueError(f"{name} must contain only finite values (no NaN or inf, none beyond float32 range)")
-        if lo is not None and v.min() < lo:
-            raise ValueError(f"{name} values must lie in [{lo}, {hi}], got min {v.min()}")
-        if hi is not None and v.max() > hi:
-            raise ValueError(f"{name} values must lie in [{lo}, {hi}], got max {v.max()}")
+        where = f"[{lo}, {hi}{')' if hi_open else ']'}"
+        if lo is not None and raw.min() < lo:
+            raise ValueError(f"{name} values must lie in {where}, got min {raw.min().item()!r}")
+        if hi is not None and (raw.max() >= hi if hi_open else raw.max() > hi):
+            raise ValueError(f"{name} values must lie in {where}, got max {raw.max().item()!r}")
     return value
 
 
@@ -143,6 +151,8 @@ def int_array(name: str, value, shape: tuple | None = None, lo: int | None = Non
               hi: int | None = None) -> jax.Array:
     """An integer array argument (e.g. per-example delays); range-checked when concrete ([N-7])."""
     if not is_traced(value):
+        if _holds_bool(value):  # np.asarray would read True among integers as 1
+            raise ValueError(f"{name} must be an integer array, got a boolean entry")
         v = np.asarray(value)
         if v.dtype == bool or not np.issubdtype(v.dtype, np.integer):
             raise ValueError(f"{name} must be an integer array, got dtype {v.dtype}")
@@ -160,6 +170,13 @@ def int_array(name: str, value, shape: tuple | None = None, lo: int | None = Non
             want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
             raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
     return value
+
+
+def _holds_bool(value) -> bool:
+    """Whether a (nested) list or tuple holds a Python or NumPy boolean."""
+    if isinstance(value, (bool, np.bool_)):
+        return True
+    return isinstance(value, (list, tuple)) and any(_holds_bool(x) for x in value)
 
 
 def select_by_code(code, branches):

@@ -71,15 +71,16 @@ def sample_delay(probs, d_min, u) -> jax.Array:
     c = delay_cdf(probs)
     # The table spans d_min .. d_min + n - 1, which must stay within [D-1]'s range.
     d_min = v.int_value("d_min", d_min, 0, MAX_DELAY - c.shape[0] + 1)
-    u = v.array("u", u, lo=0.0, allow_empty=True)  # any shape, an empty batch of draws included
-    if not v.is_traced(u) and u.size and float(np.max(np.asarray(u))) >= 1.0:
-        raise ValueError(f"u must lie in [0, 1), got max {float(np.max(np.asarray(u)))}")
+    # Any shape, an empty batch of draws included; the range is checked before rounding to float32.
+    u = v.array("u", u, lo=0.0, hi=1.0, hi_open=True, allow_empty=True)
     return _inverse_cdf(c, d_min, u)
 
 
 @jax.jit
 def _inverse_cdf(c, d_min, u):
-    return d_min + jnp.sum(c <= u[..., None], axis=-1).astype(jnp.int32)
+    # The last CDF entry is exactly 1 > u, so it never counts: leaving it out keeps a valid u that float32
+    # rounds up to 1.0 (any u >= 1 - 2^-25) on the table's last delay instead of one past it.
+    return d_min + jnp.sum(c[:-1] <= u[..., None], axis=-1).astype(jnp.int32)
 
 
 def sample_delays(key, probs, d_min, shape=()) -> jax.Array:

@@ -13,6 +13,8 @@ concrete delays passed to these functions are checked automatically.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,6 +33,15 @@ def check_delays(H: int, s: int, delays) -> np.ndarray:
     """Host-side check of a delay sequence for :func:`execute_chunks` ([X-1], [X-2]): d_0 = 0."""
     H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
+    if isinstance(delays, (str, bytes)) or not (isinstance(delays, Sequence) or hasattr(delays, "__array__")):
+        # A dict would be read by its keys and a set in hash order ([X-5]).
+        raise ValueError(f"delays must be a non-empty 1-D integer array (or list, tuple), "
+                         f"got {type(delays).__name__}")
+    if isinstance(delays, Sequence):
+        for i, d in enumerate(delays):
+            # np.asarray would read a boolean among integers as 0 or 1 ([N-7]).
+            if isinstance(d, (bool, np.bool_)):
+                raise ValueError(f"delays[{i}] must be an integer in [0, {min(s, H - s)}], got {d!r}")
     ds = np.asarray(delays)
     if ds.ndim != 1 or ds.size < 1:
         raise ValueError(f"delays must be a non-empty 1-D integer array, got shape {list(ds.shape)}")

@@ -101,7 +101,7 @@ def guided_sample(velocity_fn, obs, noise, prior, weights, num_steps: int,
     """
     _check_fn("velocity_fn", velocity_fn)
     _require_prior_weights(prior, weights)
-    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=velocity_fn)
     unroll = check_unroll(unroll)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     # Same runtime time vector as sampler.naive_sample, so that W = 0 is bitwise naive ([G-6]).
@@ -132,7 +132,7 @@ def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
     """
     _check_model(model)
     _require_prior_weights(prior, weights)
-    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=model)
     unroll = check_unroll(unroll)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
     cond = naive_conditioning(model, T) if cond is None else cond

@@ -223,7 +223,7 @@ def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: in
     if not isinstance(row, dict) or set(row) != {"weights", "cond"}:
         raise ValueError("row must be an entry of delay_rows(...) (keys 'weights', 'cond')")
     _check_model(model)
-    _, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    _, x, _, _, T = check_batch(obs, noise, num_steps=num_steps, model=model)
     H = x.shape[1]
     unroll = check_unroll(unroll)
     w = v.array("row['weights']", row["weights"], shape=(H,), lo=0.0, hi=1.0)

@@ -73,8 +73,14 @@ def blend_time(t, weights) -> jax.Array:
     return w + (1.0 - w) * t[..., None] if t.ndim else w + (1.0 - w) * t
 
 
-def check_batch(obs, noise, prior=None, weights=None, num_steps=None):
-    """Validate sampler inputs ([N-7]); returns (obs, noise, prior, weights, T) as float32 arrays."""
+def check_batch(obs, noise, prior=None, weights=None, num_steps=None, model=None):
+    """Validate sampler inputs ([N-7]); returns (obs, noise, prior, weights, T) as float32 arrays.
+
+    With ``model`` (the velocity function or conditioned model), ``noise`` and
+    ``obs`` are also checked against the sizes it declares (``horizon`` or
+    ``action_chunk_size``, ``action_dim``, ``obs_dim``), so that a mismatch
+    names the sampler's argument rather than the model's internal ``x``.
+    """
     x = v.array("noise", noise, ndim=3)
     B, H, _ = x.shape
     if B < 1:
@@ -82,6 +88,13 @@ def check_batch(obs, noise, prior=None, weights=None, num_steps=None):
     obs = v.array("obs", obs, ndim=2)
     if obs.shape[0] != B:
         raise ValueError(f"obs must have shape [B={B}, O], got {list(obs.shape)}")
+    if model is not None:
+        mH, mA, mO = model_horizon(model), _declared(model, "action_dim"), _declared(model, "obs_dim")
+        if (mH is not None and H != mH) or (mA is not None and x.shape[2] != mA):
+            raise ValueError(f"noise must have the model's shape [B, H={'*' if mH is None else mH}, "
+                             f"A={'*' if mA is None else mA}], got {list(x.shape)}")
+        if mO is not None and obs.shape[1] != mO:
+            raise ValueError(f"obs must have the model's shape [B, O={mO}], got {list(obs.shape)}")
     y = None if prior is None else v.array("prior", prior, shape=x.shape)
     w = None
     if weights is not None:
@@ -104,13 +117,19 @@ def check_unroll(unroll) -> bool:
     return v.check_bool("unroll", unroll)
 
 
+def _declared(model, attr: str) -> int | None:
+    """An integer size attribute of ``model``, or None where it declares none."""
+    value = getattr(model, attr, None)
+    return int(value) if isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)) else None
+
+
 def model_horizon(model) -> int | None:
     """The chunk length H of a conditioned ``model``: its ``horizon`` (the reference field) or
     ``action_chunk_size`` (the flow policy); None when it declares neither."""
     for attr in ("horizon", "action_chunk_size"):
-        H = getattr(model, attr, None)
-        if isinstance(H, (int, np.integer)) and not isinstance(H, bool):
-            return int(H)
+        H = _declared(model, attr)
+        if H is not None:
+            return H
     return None
 
 
@@ -213,7 +232,7 @@ def field_output(name: str, value, x) -> jax.Array:
 def naive_sample(velocity_fn, obs, noise, num_steps: int, *, unroll: bool = True) -> jax.Array:
     """Naive Euler sampler ([S-1], [S-2]): x += v(obs, x, t_k 1) / T; returns x^T [B, H, A]."""
     _check_fn("velocity_fn", velocity_fn)
-    obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps, model=velocity_fn)
     unroll = check_unroll(unroll)
     # t_k 1 is computed as the blended time of zero weights, 0 + (1 - 0) t_k (exactly t_k),
     # so that the RTC sampler with w = 0 runs the same arithmetic ([S-7]).
@@ -233,7 +252,7 @@ def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unrol
     _check_fn("velocity_fn", velocity_fn)
     require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
     require("weights", weights, "an array [H] or [B, H] in [0, 1]")
-    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=velocity_fn)
     unroll = check_unroll(unroll)
     times, wb = _runtime(euler_times(T), jnp.broadcast_to(w, x.shape[:2]))
     wx = wb[..., None]
@@ -322,7 +341,7 @@ def naive_sample_conditioned(model, obs, noise, num_steps: int, *, cond=None,
     ``cond`` (optional) is :func:`naive_conditioning`; computed here if omitted.
     """
     _check_model(model)
-    obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps)
+    obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps, model=model)
     unroll = check_unroll(unroll)
     cond = naive_conditioning(model, T) if cond is None else cond
     check_leading("cond", cond, (T,))
@@ -345,7 +364,7 @@ def rtc_sample_conditioned(model, obs, noise, prior, weights, num_steps: int, *,
     _check_model(model)
     require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
     require("weights", weights, "an array [H] or [B, H] in [0, 1]")
-    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps)
+    obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=model)
     unroll = check_unroll(unroll)
     cond = rtc_conditioning(model, w, T) if cond is None else cond
     check_leading("cond", cond, (T,))

@@ -312,3 +312,65 @@ def test_sample_delays_rejects_huge_shapes():
     d = JD.sample_delays(key, [0.5, 0.5], 1, (3,))
     assert d.shape == (3,) and set(np.asarray(d).tolist()) <= {1, 2}
     assert JD.sample_delays(key, [1.0], 0, (0,)).shape == (0,)
+
+
+def test_executor_rejects_boolean_delays_and_unordered_collections():
+    """[X-5] [X-1] [N-7] A boolean among the delays (which np.asarray reads as 1) is a ValueError naming its
+    entry, in every executor function; a dict or set of delays names delays. The same integers run."""
+    from softrtc.jax import executor as JX
+
+    chunks = np.arange(3 * 8, dtype=np.float32).reshape(3, 8, 1)
+    for bad, name in (([0, True, 1], r"^delays\[1\] must be an integer in \[0, 4\], got True$"),
+                      ((0, 1, np.bool_(True)), r"^delays\[2\] must be an integer in \[0, 4\], got "),
+                      ({0: 1, 1: 2, 2: 3}, r"^delays must be a non-empty 1-D integer array .*got dict$"),
+                      ({0, 1, 2}, r"^delays must be a non-empty 1-D integer array .*got set$")):
+        with pytest.raises(ValueError, match=name):
+            JX.check_delays(8, 4, bad)
+        with pytest.raises(ValueError, match=name):
+            JX.execute_chunks(chunks, bad, 4)
+        with pytest.raises(ValueError, match=name):
+            JX.closed_loop(lambda o, p, d, c: jnp.zeros((8, 1)), lambda st, a: (st, jnp.zeros(2)), jnp.zeros(1),
+                           jnp.zeros(2), bad, 8, 4)
+    ci = np.asarray(JX.execute_chunks(chunks, [0, 1, 1], 4)["chunk_index"]).tolist()
+    assert ci == [0, 0, 0, 0, 0, 1, 1, 1, 1, 2, 2, 2]
+
+
+def test_ranges_are_checked_before_float32_rounding():
+    """[C-1] [D-3] [N-10] [N-7] tau = 1 + 1e-9 rounds to 1.0 in float32 but is out of [0, 1]: rejected, as in the
+    reference. u = 1 - 1e-12 is a valid draw that float32 rounds to 1.0: accepted, and it draws the table's last
+    delay (the reference's answer), never one past the table; u = 1 is rejected."""
+    assert np.float32(1.000000001) == 1.0 and np.float32(1 - 1e-12) == 1.0  # the premise
+    for tau in (1.000000001, np.array([0.5, 1.000000001]), -1e-12):
+        with pytest.raises(ValueError, match=r"^tau values must lie in \[0\.0, 1\.0\]"):
+            JC.token_times(np.zeros(2), tau)
+        with pytest.raises(ValueError, match=r"^tau .*\[0\.0, 1\.0\]"):
+            R.corruption.token_times(np.zeros(2), tau if np.ndim(tau) == 0 else 1.000000001)
+    probs = np.full(4, 0.25)
+    for u in (1 - 1e-12, np.nextafter(1.0, 0.0), 0.9999999):
+        assert int(JD.sample_delay(probs, 2, u)) == R.delays.sample_delay(probs, 2, u) == 5
+    np.testing.assert_array_equal(JD.sample_delay(probs, 2, np.array([0.0, 0.25, 0.5, 1 - 1e-12])), [2, 3, 4, 5])
+    for u in (1.0, np.array([0.5, 1.0]), -1e-12):
+        with pytest.raises(ValueError, match=r"^u values must lie in \[0\.0, 1\.0\)"):
+            JD.sample_delay(probs, 2, u)
+
+
+def test_sampler_shapes_named_by_the_samplers_arguments():
+    """[S-2] [S-3] [G-2] [N-7] noise or obs that does not fit the model's declared sizes is named as noise or
+    obs by every sampler (straightforward and conditioned), not as the model's internal x."""
+    cases = {
+        "naive": lambda o, n: JS.naive_sample(F, o, n, 2),
+        "rtc": lambda o, n: JS.rtc_sample(F, o, n, n, jnp.zeros(n.shape[1]), 2),
+        "guided": lambda o, n: JG.guided_sample(F, o, n, n, jnp.zeros(n.shape[1]), 2),
+        "naive_conditioned": lambda o, n: JS.naive_sample_conditioned(F, o, n, 2),
+        "rtc_conditioned": lambda o, n: JS.rtc_sample_conditioned(F, o, n, n, jnp.zeros(n.shape[1]), 2),
+        "guided_conditioned": lambda o, n: JG.guided_sample_conditioned(F, o, n, n, jnp.zeros(n.shape[1]), 2),
+    }
+    for name, call in cases.items():
+        with pytest.raises(ValueError, match=rf"^noise must have the model's shape \[B, H={H}, A={A}\], "
+                                             rf"got \[{B}, {H}, 3\]$"):
+            call(OBS, jnp.ones((B, H, 3)))
+        with pytest.raises(ValueError, match=rf"^noise must have the model's shape .*got \[{B}, 6, {A}\]$"):
+            call(OBS, jnp.ones((B, 6, A)))
+        with pytest.raises(ValueError, match=rf"^obs must have the model's shape \[B, O={O}\], got \[{B}, 5\]$"):
+            call(jnp.zeros((B, 5)), X)
+        assert call(OBS, X).shape == (B, H, A), name

@@ -367,3 +367,79 @@ def test_conformance_api_arguments():
     _raises_naming(lambda: generate.generate(123), "out_dir")
     res = runner.run("reference", only=["batch_loss"])
     assert res.cases and {c.function for c in res.cases} == {"batch_loss"}
+
+
+def test_executor_delays_must_be_an_ordered_sequence():
+    """[X-5] [N-7] A dict of delays (iterated by its keys) or a set (hash order) is a ValueError naming delays;
+    a 2-D array too. The same delays as a list, tuple or 1-D array run, and give the executed order of [X-4]."""
+    chunks = np.arange(3 * 8, dtype=float).reshape(3, 8, 1)
+    # {0: 1, 1: 2, 2: 3} read by its keys would be the valid delays 0, 1, 2.
+    for bad in ({0: 1, 1: 2, 2: 3}, {0, 1, 2}, frozenset({0, 1, 2}), np.zeros((1, 3), int), iter([0, 1, 2])):
+        with pytest.raises(ValueError, match=r"^delays must be a sequence of 3 integers"):
+            executor.execute_chunks(chunks, bad, 4)
+        with pytest.raises(ValueError, match=r"^delays must be a sequence of 3 integers"):
+            executor.closed_loop(lambda o, p, d, c: np.zeros((8, 1)), lambda a: 0.0, 0.0, 3, 8, 4, bad)
+    for good in ([0, 1, 2], (0, 1, 2), np.array([0, 1, 2])):
+        ci = executor.execute_chunks(chunks, good, 4)["chunk_index"].tolist()
+        # Chunk 1 takes over after d_1 = 1 step of segment 1, chunk 2 after d_2 = 2 steps of segment 2.
+        assert ci == [0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 2, 2]
+
+
+def test_closed_loop_names_generate_when_a_chunk_changes_width():
+    """[X-6] [N-7] A later chunk with another action width than the first is an error naming generate and the
+    chunk, not the executor's internal argument new_chunk."""
+    gen = lambda obs, prior, d, c: np.zeros((8, 2 if c == 0 else 3))  # noqa: E731
+    with pytest.raises(ValueError, match=r"^generate must return chunks of shape \[H=8, A=2\], got \[8, 3\] "
+                                         r"for chunk 1$"):
+        executor.closed_loop(gen, lambda a: 0.0, 0.0, 3, 8, 4, [0, 1, 1])
+
+
+def test_samplers_name_noise_and_obs_against_the_fields_sizes():
+    """[S-2] [S-3] [G-2] [N-7] A noise or obs that does not fit the field's declared sizes is named by the
+    sampler's argument (noise, obs), not by the field's internal x."""
+    f = ReferenceVelocityField.init(0, 8, 2, 3)
+    obs, noise, w = np.zeros(3), np.zeros((8, 3)), np.zeros(8)
+    calls = {"naive": lambda o, n: sampler.naive_sample(f, o, n, 2),
+             "rtc": lambda o, n: sampler.rtc_sample(f, o, n, n, np.zeros(n.shape[0]), 2),
+             "guided": lambda o, n: guidance.guided_sample(f, o, n, n, np.zeros(n.shape[0]), 2)}
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=r"^noise must have the field's shape \[H=8, A=2\], got \[8, 3\]$"):
+            call(obs, noise)
+        with pytest.raises(ValueError, match=r"^noise must have the field's shape \[H=8, A=2\], got \[6, 2\]$"):
+            call(obs, np.zeros((6, 2)))
+        with pytest.raises(ValueError, match=r"^obs must have the field's shape \[O=3\], got \[4\]$"):
+            call(np.zeros(4), np.zeros((8, 2)))
+    assert w.shape == (8,) and sampler.naive_sample(f, obs, np.zeros((8, 2)), 2).shape == (8, 2)
+
+
+def test_metrics_name_ragged_and_mistyped_arguments():
+    """[M-3] [M-4] [M-5] [N-7] Ragged lists and arrays of the wrong kind name the argument: chunk_index and
+    indices must be integers, solved booleans."""
+    cases = [
+        (lambda: metrics.switch_steps([[0], [1, 2]]), r"^chunk_index must be an integer array, got a ragged"),
+        (lambda: metrics.switch_steps([0.0, 1.0]), r"^chunk_index must be an integer array, got dtype float64"),
+        (lambda: metrics.boundary_jump(np.zeros((3, 2)), [[0], [1, 2]]), r"^chunk_index must be an integer array"),
+        (lambda: metrics.solve_rate([[True], [False, True]]), r"^solved must be a boolean array, got a ragged"),
+        (lambda: metrics.solve_rate([1, 0]), r"^solved must be a boolean array, got dtype int64"),
+        (lambda: metrics.bootstrap_interval_from_indices([1.0, 2.0], [[0, 1], [1]]),
+         r"^indices must be an integer array, got a ragged"),
+        (lambda: metrics.bootstrap_interval([[1.0], [2.0, 3.0]]), r"^values must be a real numeric array"),
+    ]
+    for call, match in cases:
+        with pytest.raises(ValueError, match=match):
+            call()
+    assert metrics.solve_rate([True, False, False, True]) == 0.5
+
+
+def test_bootstrap_matrix_size_is_bounded():
+    """[N-12] [M-5] B * n is at most 10^8 entries: 10^7 resamples of 10^7 values, each factor within its own
+    bound, is a ValueError naming both arguments before any memory is taken, not a MemoryError."""
+    with pytest.raises(ValueError, match=r"^num_resamples \* num_values must be at most 100000000 \(\[N-12\]\), "
+                                         r"got 10000000 \* 10000000$"):
+        metrics.bootstrap_indices(10**7, 10**7, 0)
+    with pytest.raises(ValueError, match=r"^num_resamples \* num_values must be at most"):
+        metrics.bootstrap_interval(np.ones(10**4 + 1), 10**4, 0)
+    # At the bound's edge in one factor: a matrix of 10^7 rows of 2 values is drawn, as [M-5] defines it.
+    idx = metrics.bootstrap_indices(2, 5 * 10**6, 0)
+    assert idx.shape == (5 * 10**6, 2) and idx.min() == 0 and idx.max() == 1
+    np.testing.assert_array_equal(idx[:3], np.random.default_rng(0).integers(0, 2, (3, 2)))
