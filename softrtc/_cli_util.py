@@ -9,6 +9,8 @@ only when it writes its result.
 3
 >>> comma_list("value", int_in("each entry", 0, 8))("0,2,4")
 [0, 2, 4]
+>>> real_in("value", 0.0, 10.0)("2.5e0")
+2.5
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ def command_error(prog: str, message) -> int:
 
 # Plain ASCII decimal integers: Python's int() would also take "1_0", " 7 " or full-width digits.
 _INT = re.compile(r"[+-]?[0-9]+")
+# Plain ASCII decimal reals (an optional exponent): float() would also take "1_0", " 2 ", "２" or "٣".
+_REAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 
 def int_in(what: str, lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
@@ -69,8 +73,8 @@ def real_in(what: str, lo: float | None = None, hi: float | None = None, *,
     """A finite real number in [lo, hi], or in (lo, hi] with ``lo_open``."""
     def parse(text: str) -> float:
         try:
-            value = float(text)
-        except ValueError:
+            value = float(text) if _REAL.fullmatch(text) else math.nan
+        except (ValueError, OverflowError):
             value = math.nan
         below = lo is not None and (value <= lo if lo_open else value < lo)
         if not math.isfinite(value) or below or (hi is not None and value > hi):

@@ -36,12 +36,10 @@ def _delay(text: str):
     if text == "rotate":
         return None
     try:
-        d = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--delay must be 'rotate' or an integer >= 0, got {text!r}")
-    if d < 0:
-        raise argparse.ArgumentTypeError(f"--delay must be 'rotate' or an integer >= 0, got {text!r}")
-    return d
+        # ASCII digits only, as every integer option ([N-11]): int() would read "1_0" or full-width digits.
+        return int_in("value", 0, 4096)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"value must be 'rotate' or an integer in [0, 4096], got {text!r}") from None
 
 
 def _common_options(parser, noun: str, out: str) -> None:

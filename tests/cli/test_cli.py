@@ -209,6 +209,36 @@ def test_integer_options_take_plain_decimals_only():
             parse(bad)
 
 
+def test_real_options_take_plain_decimals_only(capsys):
+    """N-7, N-11: real options take ASCII decimal numbers (sign, fraction, exponent); Python's float() would also
+    read '1_0' as 10, ' 2 ' as 2, full-width and Arabic-Indic digits. The command names the option."""
+    import argparse
+
+    parse = cu.real_in("value", 0.0, 100.0)
+    for text, want in (("2", 2.0), ("+2.5", 2.5), (".5", 0.5), ("5.", 5.0), ("1e1", 10.0), ("2.5E-1", 0.25)):
+        assert parse(text) == want, text
+    for bad in ("1_0", " 2", "2 ", "\uff12", "\u0663", "\uff11.5", "0x1", "1e", ".", "inf", "nan", "1e400", ""):
+        with pytest.raises(argparse.ArgumentTypeError, match=r"^value must be a finite number in \[0.0, 100.0\], "
+                                                             r"got "):
+            parse(bad)
+    for bad in ("1_0", "\uff12", " 2 "):
+        assert status(["weights", "--lam", bad]) == 2
+        assert last_error_line(capsys) == (f"softrtc weights: error: argument --lam: value must be a finite number "
+                                           f"in [0.0, 4096.0], got {bad!r}")
+
+
+def test_bench_delay_takes_rotate_or_a_plain_integer(capsys):
+    """N-11, B-10: --delay is 'rotate' or an ASCII integer in [0, 4096]; '1_0', full-width digits and padding
+    are errors naming --delay, where int() read them as 10, 1 and 1."""
+    from softrtc.jax.cli import _delay
+
+    assert _delay("rotate") is None and _delay("3") == 3 and _delay("0") == 0
+    for bad in ("1_0", "\uff11", " 1", "1 ", "-1", "4097", "1.0", ""):
+        assert status(["bench", "runtime", "--delay", bad]) == 2
+        assert last_error_line(capsys) == ("softrtc bench runtime: error: argument --delay: value must be 'rotate' "
+                                           f"or an integer in [0, 4096], got {bad!r}")
+
+
 def test_weights_table_lines_have_no_trailing_spaces(capsys):
     """W-7: the weights table printed by `softrtc weights` has no trailing blanks (it is compared as text)."""
     assert status(["weights"]) == 0
