@@ -55,7 +55,7 @@ def add_subparsers(subparsers) -> None:
 
 
 def _train(args) -> int:
-    from .policies import train_arm_policies
+    from .training import train_arm_policies
 
     paths = train_arm_policies(args.out, episodes=args.episodes, steps=args.steps, finetune_steps=args.finetune_steps,
                                seed=args.seed)

@@ -17,11 +17,15 @@ import os
 import jax
 import numpy as np
 
+from softrtc._files import check_out_dir
+from softrtc.reference._validate import check_int
 from softrtc.reference.metrics import standard_error
 
+from ._checks import check_number
+from .checkpoints import load_policies
 from .env import NUM_OBJECTS, ArmConfig
 from .executor import EpisodeRecord, episode_metrics
-from .policies import METHOD_LABELS, STUDY_METHODS, load_policies
+from .policy_config import METHOD_LABELS, STUDY_METHODS
 from .runtime import RuntimeConfig, jitter_summary, run_realtime_episode
 
 __all__ = ["run_study", "summarize", "format_table", "plot_traces", "DEFAULT_ADDED_LATENCY_S", "DEFAULT_SEED0"]
@@ -152,19 +156,17 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
     trials of a method ([R-9]). ``verbose`` prints the table and the jitter
     lines, and with ``announce_files`` the paths written.
     """
-    from .policies import _check_int, _check_float, _check_out_dir
-
-    trials = _check_int("trials", trials, 1, 10000)
-    seed0 = _check_int("seed0", seed0, 0, 2**31 - 1)
-    key_seed = _check_int("key_seed", key_seed, 0, 2**31 - 1)
-    added_latency_s = _check_float("added_latency_s", added_latency_s, 0.0, 10.0)
-    out = _check_out_dir(out_dir)
+    trials = check_int("trials", trials, 1, 10000)
+    seed0 = check_int("seed0", seed0, 0, 2**31 - 1)
+    key_seed = check_int("key_seed", key_seed, 0, 2**31 - 1)
+    added_latency_s = check_number("added_latency_s", added_latency_s, 0.0, 10.0)
+    out = check_out_dir("out_dir", out_dir)
     for name in ("results.csv", "summary.csv", "traces.png"):
         if (out / name).is_dir():
             raise ValueError(f"out_dir {str(out)!r} holds a folder {name!r} where the study writes a file")
     limit_max = ArmConfig().max_steps
     if max_steps is not None:
-        max_steps = _check_int("max_steps", max_steps, 1, limit_max)
+        max_steps = check_int("max_steps", max_steps, 1, limit_max)
     for name, flag in (("plot", plot), ("verbose", verbose), ("announce_files", announce_files)):
         if not isinstance(flag, bool):
             raise ValueError(f"{name} must be True or False, got {flag!r}")

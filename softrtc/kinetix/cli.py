@@ -128,14 +128,17 @@ def _eval_inner(args) -> int:
     from softrtc.jax.policy import FlowPolicy, PolicyConfig
 
     from . import env as kenv
-    from . import harness
+    from .evaluation import evaluate
     from .finetune import find_level_policy_file, load_level_policy
+    from .methods import PAPER_METHODS
+    from .protocol import EvalConfig
+    from .results import write_results
 
     levels = tuple(args.levels) if args.levels else kenv.LEVEL_NAMES
-    methods = tuple(args.methods) if args.methods else harness.PAPER_METHODS
+    methods = tuple(args.methods) if args.methods else PAPER_METHODS
     delays = tuple(args.delays)
-    config = harness.EvalConfig(levels=levels, methods=methods, delays=delays, episodes=args.episodes,
-                                seed=args.seed, levels_dir=args.levels_dir)
+    config = EvalConfig(levels=levels, methods=methods, delays=delays, episodes=args.episodes,
+                        seed=args.seed, levels_dir=args.levels_dir)
     kenv.resolve_levels_dir(args.levels_dir, config.levels)  # clear error before anything heavy
     labels = [spec.label for spec in config.methods]
     overrides: dict = {}
@@ -181,9 +184,9 @@ def _eval_inner(args) -> int:
         d = sources[spec.label][1]
         return fresh if d is None else cache[(d, level)]
 
-    result = harness.evaluate(config, policies, progress=not args.no_progress)
-    paths = harness.write_results(result, args.out, bootstrap_resamples=config.bootstrap_resamples,
-                                  bootstrap_seed=config.bootstrap_seed)
+    result = evaluate(config, policies, progress=not args.no_progress)
+    paths = write_results(result, args.out, bootstrap_resamples=config.bootstrap_resamples,
+                          bootstrap_seed=config.bootstrap_seed)
     print(Path(paths["table"]).read_text(), end="")
     print("compile time per sampler family (s): " +
           ", ".join(f"{k} {v:.1f}" for k, v in result["compile_s"].items()))
@@ -201,15 +204,15 @@ def _finetune(args) -> int:
 def _finetune_inner(args) -> int:
     from . import data as kdata
     from . import env as kenv
-    from . import harness
     from .finetune import finetune_level
+    from .methods import parse_method
 
     window = None
     if args.window is not None:
         if args.method != "soft":
             raise ValueError("--window is only used with --method soft")
         try:
-            window = harness.parse_method("train_soft:" + args.window).window
+            window = parse_method("train_soft:" + args.window).window
         except ValueError:
             raise ValueError(f"--window {args.window!r} is not a soft window: expected delay_scaled:LAM[:H_MAX], "
                              f"offset:L[:H_MAX], fixed:H or hard, optionally followed by ':zeros'") from None
@@ -251,10 +254,9 @@ def _finetune_inner(args) -> int:
 
 def _bench(args) -> int:
     try:
-        from . import harness
-        res = harness.bench_harness(args.level, num_envs=args.num_envs, method=args.method, seed=args.seed,
-                                    levels_dir=args.levels_dir, repeats=args.repeats,
-                                    progress=not args.no_progress)
+        from .bench import bench_harness
+        res = bench_harness(args.level, num_envs=args.num_envs, method=args.method, seed=args.seed,
+                            levels_dir=args.levels_dir, repeats=args.repeats, progress=not args.no_progress)
     except (ValueError, OSError) as exc:
         return _fail("bench", exc)
     print(f"level {res['level']}, {res['num_envs']} envs, {res['env_steps']} env steps, method {res['method']}, "

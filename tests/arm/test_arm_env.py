@@ -395,7 +395,7 @@ def test_configs_and_normalizer_reject_nan_bools_and_wrong_lengths():
 
     from softrtc.arm import env as E
     from softrtc.arm import expert as X
-    from softrtc.arm import policies as P
+    from softrtc.arm import features as P
 
     bad_configs = [dict(joint_low=(math.nan, -3.0, -math.pi)), dict(joint_low=(-1.0, -1.0)),
                    dict(base=(math.nan, 0.45)), dict(table_half_width=-1.0), dict(box_inner_widths=(-0.2, 0.14)),

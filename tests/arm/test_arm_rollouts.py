@@ -10,7 +10,8 @@ import pytest
 pytest.importorskip("pymunk")
 
 from softrtc.arm.executor import episode_metrics, run_simulated_episode  # noqa: E402
-from softrtc.arm.policies import ArmPolicyConfig, untrained_policy  # noqa: E402
+from softrtc.arm.policies import untrained_policy  # noqa: E402
+from softrtc.arm.policy_config import ArmPolicyConfig  # noqa: E402
 from softrtc.jax import executor as jexec  # noqa: E402
 from softrtc.jax.endpoints import offset  # noqa: E402
 from softrtc.jax.weights import SoftWindow  # noqa: E402
@@ -126,7 +127,8 @@ def test_simulated_executor_validates_inputs():
 
 def test_chunk_dataset_and_policy_output_head():
     """A-17, A-19, A-8: chunks repeat the last label past an episode's end; chunks lie in the action box."""
-    from softrtc.arm.policies import action_bounds, chunk_dataset
+    from softrtc.arm.features import action_bounds
+    from softrtc.arm.training import chunk_dataset
 
     data = {"obs": np.arange(5 * 34, dtype=np.float32).reshape(5, 34),
             "action": np.arange(5 * 4, dtype=np.float32).reshape(5, 4),
@@ -145,8 +147,9 @@ def test_chunk_dataset_and_policy_output_head():
 
 def test_checkpoint_roundtrip_and_shipped_checkpoints(tmp_path):
     """A-18, A-21, T-11, T-12: a saved policy reloads to the same chunks; the shipped set is small and complete."""
-    from softrtc.arm.policies import (ARM_FORMAT, FEATURE_DIM, arm_train_config, default_checkpoint_dir,
-                                      load_arm_checkpoint, save_arm_checkpoint)
+    from softrtc.arm.checkpoints import ARM_FORMAT, default_checkpoint_dir, load_arm_checkpoint, save_arm_checkpoint
+    from softrtc.arm.features import FEATURE_DIM
+    from softrtc.arm.training import arm_train_config
     from softrtc.jax.checkpoint import read_checkpoint
 
     p = policy("train_hard")
@@ -193,7 +196,7 @@ def test_checkpoint_roundtrip_and_shipped_checkpoints(tmp_path):
 def test_policy_features_mark_the_current_part():
     """A-17: the features append a one-hot of the first part not placed and tip-relative part/box offsets."""
     from softrtc.arm.env import ArmSortEnv
-    from softrtc.arm.policies import FEATURE_DIM, policy_features
+    from softrtc.arm.features import FEATURE_DIM, policy_features
 
     obs = ArmSortEnv().reset(3)
     f = policy_features(obs)
@@ -219,7 +222,8 @@ def test_policy_features_mark_the_current_part():
 def test_training_objectives_run_and_change_weights():
     """A-20, T-1, T-3, T-9, D-1, D-4: each objective maps to its chapter-T config; fine-tuning leaves the base intact."""
     import flax.nnx as nnx
-    from softrtc.arm.policies import FEATURE_DIM, Normalizer, arm_train_config, policy_features, train_flow_policy
+    from softrtc.arm.features import FEATURE_DIM, Normalizer, policy_features
+    from softrtc.arm.training import arm_train_config, train_flow_policy
     from softrtc.reference.weights import SoftWindow as RefSoftWindow
 
     rng = np.random.default_rng(0)
@@ -281,7 +285,8 @@ def _spec_train_config(method, steps, learning_rate):
 
 def test_arm_train_config_and_shipped_checkpoints_follow_the_spec():
     """A-20, A-21, T-1, T-6, W-7: the whole training config of each objective, and what each shipped file stores."""
-    from softrtc.arm.policies import arm_train_config, default_checkpoint_dir
+    from softrtc.arm.checkpoints import default_checkpoint_dir
+    from softrtc.arm.training import arm_train_config
     from softrtc.jax.checkpoint import read_checkpoint
 
     objective = {"naive": "none", "train_hard": "hard", "train_soft": "soft"}
@@ -304,7 +309,8 @@ def test_arm_train_config_and_shipped_checkpoints_follow_the_spec():
 
 def test_train_arm_policies_small_run(tmp_path):
     """A-20, A-18, T-8, T-9: demos, base and both fine-tunes end to end; only the checkpoints are written to out."""
-    from softrtc.arm.policies import arm_train_config, load_arm_checkpoint, train_arm_policies
+    from softrtc.arm.checkpoints import load_arm_checkpoint
+    from softrtc.arm.training import arm_train_config, train_arm_policies
 
     (tmp_path / "demos.npz").write_bytes(b"a file of the user's")
     paths = train_arm_policies(tmp_path, episodes=1, steps=2, finetune_steps=2, seed=5, config=CFG, batch_size=8,
@@ -337,7 +343,7 @@ def test_run_study_seeds_keys_and_csv_columns(tmp_path, monkeypatch):
 
     from softrtc.arm import study
     from softrtc.arm.env import ArmSortEnv
-    from softrtc.arm.policies import save_arm_checkpoint
+    from softrtc.arm.checkpoints import save_arm_checkpoint
 
     ckpt = tmp_path / "ckpt"
     ckpt.mkdir()
@@ -399,7 +405,8 @@ def test_throughput_is_over_the_full_trial():
 
 def test_policy_window_and_chunk_dataset_inputs_are_checked():
     """A-17, A-16, W-7, N-7: a window that is not a JAX SoftWindow and a demo layout that is not [A-16]'s raise."""
-    from softrtc.arm.policies import ArmPolicy, chunk_dataset
+    from softrtc.arm.policies import ArmPolicy
+    from softrtc.arm.training import chunk_dataset
     from softrtc.reference.weights import SoftWindow as RefSoftWindow
 
     for bad in ("soft", RefSoftWindow(), 2.0):
@@ -431,15 +438,15 @@ def test_arm_train_command_never_defaults_to_the_shipped_checkpoints(tmp_path, m
     """A-20, A-21: `softrtc arm train` writes to ./arm_checkpoints unless --out names another folder."""
     from pathlib import Path
 
-    from softrtc.arm import policies
+    from softrtc.arm import checkpoints, training
     from softrtc.cli import build_parser
 
     monkeypatch.chdir(tmp_path)
     args = build_parser().parse_args(["arm", "train"])
     assert args.out == "arm_checkpoints"
-    assert Path(args.out).resolve() != policies.default_checkpoint_dir().resolve()
+    assert Path(args.out).resolve() != checkpoints.default_checkpoint_dir().resolve()
     seen = {}
-    monkeypatch.setattr(policies, "train_arm_policies", lambda out, **kw: seen.update(out=out, **kw) or {})
+    monkeypatch.setattr(training, "train_arm_policies", lambda out, **kw: seen.update(out=out, **kw) or {})
     assert args.func(args) == 0
     assert seen == {"out": "arm_checkpoints", "episodes": 400, "steps": 4000, "finetune_steps": 800, "seed": 0}
     assert build_parser().parse_args(["arm", "train", "--out", str(tmp_path / "x")]).out == str(tmp_path / "x")

@@ -13,8 +13,11 @@ from softrtc.arm.env import ArmConfig, ArmSortEnv, forward_kinematics, inverse_k
 from softrtc.arm.expert import ExpertConfig, ScriptedExpert, run_expert_episode  # noqa: E402
 from softrtc.arm.demos import generate_demos, rollout_noisy_episode  # noqa: E402
 from softrtc.arm.executor import episode_metrics, run_simulated_episode  # noqa: E402
-from softrtc.arm.policies import (ArmPolicyConfig, Normalizer, load_policies, policy_features,  # noqa: E402
-                                  train_arm_policies, untrained_policy, FEATURE_DIM)
+from softrtc.arm.checkpoints import load_policies  # noqa: E402
+from softrtc.arm.features import FEATURE_DIM, Normalizer, policy_features  # noqa: E402
+from softrtc.arm.policies import untrained_policy  # noqa: E402
+from softrtc.arm.policy_config import ArmPolicyConfig  # noqa: E402
+from softrtc.arm.training import train_arm_policies  # noqa: E402
 from softrtc.arm.runtime import RuntimeConfig, jitter_summary, run_realtime_episode  # noqa: E402
 from softrtc.arm import study  # noqa: E402
 

@@ -35,7 +35,7 @@ def test_undefined_smoothness_metrics_are_nan_in_jax_and_left_out_of_means():
 
     from softrtc.arm.study import _mean
     from softrtc.jax import metrics as JMt
-    from softrtc.kinetix.harness import _nanmean
+    from softrtc.kinetix.results import _nanmean
 
     a = np.arange(6.0).reshape(3, 2)
     with pytest.raises(ValueError, match="chunk switch"):
@@ -53,7 +53,7 @@ def test_undefined_smoothness_metrics_are_nan_in_jax_and_left_out_of_means():
 
     # Through the summaries: a NaN jerk (arm: D3) is left out of that metric only.
     from softrtc.arm import study
-    from softrtc.kinetix import harness as KH
+    from softrtc.kinetix import results as KH
 
     nan = float("nan")
     rows = [{"method": "naive", "level": "a", "delay": 0, "return": 1.0, "solved": 1.0, "delta": 0.2, "jerk": 0.4},

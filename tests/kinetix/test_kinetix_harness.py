@@ -32,7 +32,14 @@ ROOT = Path(__file__).resolve().parents[2]
 LEVELS_DIR = (ROOT.parent / "shared" / "kinetix-levels").resolve()
 needs_levels = pytest.mark.skipif(not LEVELS_DIR.is_dir(), reason=SHARED_LEVELS_REASON)
 
-from softrtc.kinetix import harness as H  # noqa: E402
+from softrtc.kinetix import evaluation as kevaluation  # noqa: E402
+from softrtc.kinetix.bench import bench_harness  # noqa: E402
+from softrtc.kinetix.evaluation import episode_metrics, evaluate  # noqa: E402
+from softrtc.kinetix.limits import EPISODES_MAX, NUM_ENVS_MAX, REPEATS_MAX  # noqa: E402
+from softrtc.kinetix.methods import MethodSpec, method_family, parse_method, rollout_weight_table  # noqa: E402
+from softrtc.kinetix.protocol import EvalConfig  # noqa: E402
+from softrtc.kinetix.results import main_table, summarize, write_results  # noqa: E402
+from softrtc.kinetix.rollout import episode_keys, make_rollout  # noqa: E402
 
 S = 4
 EPISODES = 2
@@ -55,13 +62,13 @@ def setup():
         if "adaln" in jax.tree_util.keystr(path) else np.asarray(a), state_pure_dict(pol))
     load_pure_dict(pol, pure)
     n = EPISODES * len(DELAYS)
-    ro = H.make_rollout(task, pol, "rtc", n, episode_steps=STEPS)
-    keys = jax.numpy.tile(H.episode_keys(0, "grasp_easy", EPISODES), len(DELAYS))
+    ro = make_rollout(task, pol, "rtc", n, episode_steps=STEPS)
+    keys = jax.numpy.tile(episode_keys(0, "grasp_easy", EPISODES), len(DELAYS))
     delays = np.repeat(np.asarray(DELAYS), EPISODES)
-    outs = {m: ro(pol, H.parse_method(m), "grasp_easy", keys, delays)
+    outs = {m: ro(pol, parse_method(m), "grasp_easy", keys, delays)
             for m in ("naive", "train_hard", "train_soft", "train_soft:offset:0")}
-    guided = H.make_rollout(task, pol, "guided", n, episode_steps=STEPS)
-    outs |= {m: guided(pol, H.parse_method(m), "grasp_easy", keys, delays)
+    guided = make_rollout(task, pol, "guided", n, episode_steps=STEPS)
+    outs |= {m: guided(pol, parse_method(m), "grasp_easy", keys, delays)
              for m in ("inference_hard", "inference_soft")}
     return {"task": task, "policy": pol, "rollout": ro, "guided": guided, "keys": keys, "delays": delays,
             "outs": outs}
@@ -72,28 +79,28 @@ def setup():
 
 def test_parse_method_and_tables():
     """KE-2, KE-3, S-6, G-1, W-7, W-8, X-2: method strings, families and per-delay weight tables."""
-    assert H.parse_method("naive").method == "naive"
-    soft = H.parse_method("train_soft")
+    assert parse_method("naive").method == "naive"
+    soft = parse_method("train_soft")
     assert soft.window.rule.kind == "delay_scaled" and soft.window.rule.lam == 2.0 and soft.window.rule.h_max == 5
-    off = H.parse_method("train_soft:offset:1")
+    off = parse_method("train_soft:offset:1")
     assert off.window.rule.kind == "offset" and off.window.rule.length == 1 and off.window.rule.h_max == 8
-    assert H.parse_method("train_soft:delay_scaled:2:5:zeros").window.overflow == "zeros"
-    zeros = H.parse_method("train_soft:zeros").window  # the main window, zero-padded ([KE-2] grammar)
+    assert parse_method("train_soft:delay_scaled:2:5:zeros").window.overflow == "zeros"
+    zeros = parse_method("train_soft:zeros").window  # the main window, zero-padded ([KE-2] grammar)
     assert zeros.overflow == "zeros" and zeros.rule == soft.window.rule
-    assert H.parse_method("train_soft:delay_scaled:1").display == "Train Soft RTC (delay_scaled:1)"
+    assert parse_method("train_soft:delay_scaled:1").display == "Train Soft RTC (delay_scaled:1)"
     for bad in ("", "fancy", "naive:offset:1", "train_soft:offset", "train_soft:offset:x", "train_soft:wide:3",
                 "train_soft:delay_scaled:1_0", "train_soft:fixed:\uff13"):
         with pytest.raises(ValueError, match="method"):
-            H.parse_method(bad)
-    assert [H.method_family(m) for m in ref_methods.METHODS] == ["rtc", "guided", "guided", "rtc", "rtc"]
+            parse_method(bad)
+    assert [method_family(m) for m in ref_methods.METHODS] == ["rtc", "guided", "guided", "rtc", "rtc"]
     for m in ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft"):
-        spec = H.parse_method(m)
-        t = H.rollout_weight_table(spec, 8, S)
+        spec = parse_method(m)
+        t = rollout_weight_table(spec, 8, S)
         assert t.shape == (6, 8) and np.all(t[-1] == 0)  # last row: the first chunk, naive ([X-2])
         for d in range(5):
             np.testing.assert_allclose(t[d], ref_methods.method_weights(m, 8, S, d, spec.window), atol=1e-6)
-    np.testing.assert_array_equal(H.rollout_weight_table(H.parse_method("train_soft:offset:0"), 8, S),
-                                  H.rollout_weight_table(H.parse_method("train_hard"), 8, S))
+    np.testing.assert_array_equal(rollout_weight_table(parse_method("train_soft:offset:0"), 8, S),
+                                  rollout_weight_table(parse_method("train_hard"), 8, S))
 
 
 def test_episode_metrics_truncate():
@@ -101,12 +108,12 @@ def test_episode_metrics_truncate():
     a = np.zeros((10, 2))
     a[:4, 0] = [0.0, 1.0, 3.0, 6.0]
     a[4:] = 100.0  # after the episode's end: must not count
-    m = H.episode_metrics(a, 4)
+    m = episode_metrics(a, 4)
     assert m["delta"] == pytest.approx(ref_metrics.action_delta(a[:4]))
     assert m["jerk"] == pytest.approx(1.0)
-    assert np.isnan(H.episode_metrics(a, 2)["jerk"]) and np.isnan(H.episode_metrics(a, 1)["delta"])
+    assert np.isnan(episode_metrics(a, 2)["jerk"]) and np.isnan(episode_metrics(a, 1)["delta"])
     with pytest.raises(ValueError, match="length"):
-        H.episode_metrics(a, 11)
+        episode_metrics(a, 11)
 
 
 def test_summarize_pools_levels_and_delays():
@@ -119,7 +126,7 @@ def test_summarize_pools_levels_and_delays():
                 rows.append({"method": "naive", "level": lv, "delay": d, "episode": e, "return": rng.normal(),
                              "solved": bool(rng.integers(2)), "length": 10, "delta": rng.random(),
                              "jerk": rng.random()})
-    summ = H.summarize(rows, bootstrap_resamples=500)
+    summ = summarize(rows, bootstrap_resamples=500)
     per = {(r["level"], r["scope"]): r for r in summ["per_level"]}
     for lv in ("grasp_easy", "catapult", "trampoline"):
         want = np.mean([np.mean([r["return"] for r in rows if r["level"] == lv and r["delay"] == d]) for d in DELAYS])
@@ -131,39 +138,39 @@ def test_summarize_pools_levels_and_delays():
     assert pooled["overall"]["solved"] == pytest.approx(vals.mean())
     lo, hi = ref_metrics.bootstrap_interval(vals, 500, 0)
     assert (pooled["overall"]["solved_lo"], pooled["overall"]["solved_hi"]) == pytest.approx((lo, hi))
-    table = H.main_table(summ)
+    table = main_table(summ)
     assert table.splitlines()[0].startswith("| Method | Overall Return | Overall Solve | High-delay Solve | High-delay Jerk")
     assert "| Base Naive |" in table
     with pytest.raises(ValueError, match="rows"):
-        H.summarize([])
+        summarize([])
     with pytest.raises(ValueError, match=r"^rows\[0\]\['delay'\] must be an integer"):
-        H.summarize([dict(rows[0], delay=-7)])
+        summarize([dict(rows[0], delay=-7)])
     with pytest.raises(ValueError, match=r"^rows\[1\] must be a mapping with keys"):
-        H.summarize([rows[0], {"method": "naive"}])
+        summarize([rows[0], {"method": "naive"}])
 
 
 def test_config_and_input_validation():
     """N-7, X-1, KE-1, KE-9: bad protocol and bench values raise ValueError naming the argument."""
-    assert H.EvalConfig().episodes == 32 and H.EvalConfig().delays == (0, 1, 2, 3, 4)
-    assert H.EvalConfig().execute_horizon == 4 and H.EvalConfig().num_flow_steps == 5
+    assert EvalConfig().episodes == 32 and EvalConfig().delays == (0, 1, 2, 3, 4)
+    assert EvalConfig().execute_horizon == 4 and EvalConfig().num_flow_steps == 5
     for kw, name in (({"levels": ("nope",)}, "levels"), ({"episodes": 0}, "episodes"),
                      ({"delays": (0, 5)}, "delays"), ({"methods": ("naive", "naive")}, "methods"),
                      ({"episodes": 2.0}, "episodes"), ({"seed": -1}, "seed"),
                      ({"delays": 3}, "delays"), ({"levels": 5}, "levels"), ({"methods": 5}, "methods"),
                      ({"delays": "01"}, "delays"), ({"levels": None}, "levels"),
-                     ({"episodes": H.EPISODES_MAX + 1}, "episodes"), ({"episode_steps": 0}, "episode_steps")):
+                     ({"episodes": EPISODES_MAX + 1}, "episodes"), ({"episode_steps": 0}, "episode_steps")):
         with pytest.raises(ValueError, match=f"^{name}"):
-            H.EvalConfig(**kw)
+            EvalConfig(**kw)
     # A bare level or method string is a one-entry sequence; a NumPy array of delays is a sequence.
-    assert H.EvalConfig(levels="catapult", methods="naive", delays=np.arange(3)).delays == (0, 1, 2)
+    assert EvalConfig(levels="catapult", methods="naive", delays=np.arange(3)).delays == (0, 1, 2)
     with pytest.raises(ValueError, match="level"):
-        H.episode_keys(0, "nope", 2)
+        episode_keys(0, "nope", 2)
     with pytest.raises(ValueError, match="window"):
-        H.MethodSpec("train_hard", window=H.parse_method("train_soft").window)
+        MethodSpec("train_hard", window=parse_method("train_soft").window)
     with pytest.raises(ValueError, match="level"):
-        H.bench_harness("nope")
+        bench_harness("nope")
     with pytest.raises(ValueError, match=r"^repeats must be an integer in \[1, 100\]"):
-        H.bench_harness(repeats=H.REPEATS_MAX + 1)
+        bench_harness(repeats=REPEATS_MAX + 1)
 
 
 def test_cli_ranges_are_the_librarys():
@@ -171,12 +178,12 @@ def test_cli_ranges_are_the_librarys():
     from softrtc.cli import build_parser
     from softrtc.kinetix import limits
 
-    assert (H.EPISODES_MAX, H.REPEATS_MAX, H.NUM_ENVS_MAX) == (limits.EPISODES_MAX, limits.REPEATS_MAX,
+    assert (EPISODES_MAX, REPEATS_MAX, NUM_ENVS_MAX) == (limits.EPISODES_MAX, limits.REPEATS_MAX,
                                                                limits.NUM_ENVS_MAX)
     parser = build_parser()
     ev = ["kinetix", "eval", "--out", "x"]
     assert parser.parse_args(ev + ["--episodes", str(limits.EPISODES_MAX)]).episodes == limits.EPISODES_MAX
-    assert H.EvalConfig(episodes=limits.EPISODES_MAX).episodes == limits.EPISODES_MAX
+    assert EvalConfig(episodes=limits.EPISODES_MAX).episodes == limits.EPISODES_MAX
     assert parser.parse_args(["kinetix", "bench", "--repeats", str(limits.REPEATS_MAX)]).repeats == limits.REPEATS_MAX
     assert parser.parse_args(["kinetix", "bench", "--num-envs", str(limits.NUM_ENVS_MAX)]).num_envs == \
         limits.NUM_ENVS_MAX
@@ -187,9 +194,9 @@ def test_cli_ranges_are_the_librarys():
             parser.parse_args(argv)
     # make_rollout and EvalConfig share the episode_steps range ([KE-1]).
     assert limits.EPISODE_STEPS_MIN == 1
-    assert H.EvalConfig(episode_steps=limits.EPISODE_STEPS_MIN).episode_steps == 1
+    assert EvalConfig(episode_steps=limits.EPISODE_STEPS_MIN).episode_steps == 1
     with pytest.raises(ValueError, match="episode_steps"):
-        H.EvalConfig(episode_steps=limits.EPISODE_STEPS_MAX + 1)
+        EvalConfig(episode_steps=limits.EPISODE_STEPS_MAX + 1)
 
 
 # ----------------------------------------------------------------------------- rollouts
@@ -286,16 +293,16 @@ def test_matches_reference_executor(setup):
 def test_same_seed_same_rollout(setup):
     """N-9, KE-5: the same keys give the same rollout; other keys give another."""
     ro, pol, keys, delays = setup["rollout"], setup["policy"], setup["keys"], setup["delays"]
-    again = ro(pol, H.parse_method("naive"), "grasp_easy", keys, delays)
+    again = ro(pol, parse_method("naive"), "grasp_easy", keys, delays)
     for k in ("actions", "chunks", "return", "length", "solved"):
         np.testing.assert_array_equal(again[k], setup["outs"]["naive"][k])
-    other = jax.numpy.tile(H.episode_keys(1, "grasp_easy", EPISODES), len(DELAYS))
-    assert not np.array_equal(ro(pol, H.parse_method("naive"), "grasp_easy", other, delays)["actions"],
+    other = jax.numpy.tile(episode_keys(1, "grasp_easy", EPISODES), len(DELAYS))
+    assert not np.array_equal(ro(pol, parse_method("naive"), "grasp_easy", other, delays)["actions"],
                               again["actions"])
     with pytest.raises(ValueError, match="delays"):
-        ro(pol, H.parse_method("naive"), "grasp_easy", keys, np.full(len(delays), 5))
+        ro(pol, parse_method("naive"), "grasp_easy", keys, np.full(len(delays), 5))
     with pytest.raises(ValueError, match="family"):
-        ro(pol, H.parse_method("inference_hard"), "grasp_easy", keys, delays)
+        ro(pol, parse_method("inference_hard"), "grasp_easy", keys, delays)
 
 
 @pytest.mark.slow
@@ -312,9 +319,9 @@ def test_rollout_mesh_over_env_axis(setup):
 def test_evaluate_end_to_end(setup, tmp_path):
     """KE-1, KE-7, KE-8, M-4, X-6: evaluate two levels, write CSV and the Markdown table (reuses the compile)."""
     methods = ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft")
-    cfg = H.EvalConfig(levels=("grasp_easy", "cartpole_thrust"), methods=methods,
+    cfg = EvalConfig(levels=("grasp_easy", "cartpole_thrust"), methods=methods,
                        episodes=EPISODES, episode_steps=STEPS, levels_dir=str(LEVELS_DIR))
-    res = H.evaluate(cfg, setup["policy"], progress=False)
+    res = evaluate(cfg, setup["policy"], progress=False)
     rows = res["episodes"]
     assert len(rows) == len(methods) * 2 * len(DELAYS) * EPISODES
     assert set(res["compile_s"]) == {"rtc", "guided"}
@@ -336,7 +343,7 @@ def test_evaluate_end_to_end(setup, tmp_path):
         out = setup["outs"][m]
         for i, d in enumerate(setup["delays"]):
             assert g[(m, "grasp_easy", int(d), i % EPISODES)]["return"] == pytest.approx(float(out["return"][i]))
-    paths = H.write_results(res, tmp_path, bootstrap_resamples=200)
+    paths = write_results(res, tmp_path, bootstrap_resamples=200)
     with open(paths["pooled"]) as f:
         pooled = list(csv.DictReader(f))
     assert {(r["method"], r["scope"]) for r in pooled} == {(m, s) for m in methods for s in ("overall", "high")}
@@ -355,9 +362,9 @@ def test_evaluate_checks_every_policy_before_the_first_rollout(monkeypatch):
 
     pol = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM, config=SMALL, rngs=nnx.Rngs(0))
     with pytest.raises(ValueError, match=r"^episode_steps must be an integer in \[1, 65536\]"):  # EvalConfig's range
-        H.make_rollout(kenv.make_env("grasp_easy", LEVELS_DIR), pol, "rtc", 1, episode_steps=0)
-    monkeypatch.setattr(H, "make_rollout", no_rollout)
-    cfg = H.EvalConfig(levels=("grasp_easy", "catapult"), methods=("naive", "train_hard"), episodes=1,
+        make_rollout(kenv.make_env("grasp_easy", LEVELS_DIR), pol, "rtc", 1, episode_steps=0)
+    monkeypatch.setattr(kevaluation, "make_rollout", no_rollout)
+    cfg = EvalConfig(levels=("grasp_easy", "catapult"), methods=("naive", "train_hard"), episodes=1,
                        levels_dir=str(LEVELS_DIR))
     calls = []
 
@@ -366,18 +373,18 @@ def test_evaluate_checks_every_policy_before_the_first_rollout(monkeypatch):
         return None if (spec.label, level) == ("train_hard", "catapult") else pol
 
     with pytest.raises(ValueError, match="'train_hard' and level 'catapult'"):
-        H.evaluate(cfg, policies, progress=False)
+        evaluate(cfg, policies, progress=False)
     assert calls == [(m, lv) for m in ("naive", "train_hard") for lv in ("grasp_easy", "catapult")]
     # H = 6 with s = 4 holds delays up to min(4, 2) = 2 only ([X-1]).
     short = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM,
                        config=PolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1,
                                            action_chunk_size=6), rngs=nnx.Rngs(0))
     with pytest.raises(ValueError, match=r"^delays must lie in \[0, 2\].*'train_hard' and level 'catapult'"):
-        H.evaluate(cfg, lambda spec, level: short if spec.label == "train_hard" and level == "catapult" else pol,
+        evaluate(cfg, lambda spec, level: short if spec.label == "train_hard" and level == "catapult" else pol,
                    progress=False)
     wrong = FlowPolicy(obs_dim=5, action_dim=kenv.ACTION_DIM, config=SMALL, rngs=nnx.Rngs(0))
     with pytest.raises(ValueError, match="obs_dim=679"):
-        H.evaluate(cfg, {"grasp_easy": pol, "catapult": wrong}, progress=False)
+        evaluate(cfg, {"grasp_easy": pol, "catapult": wrong}, progress=False)
 
 
 # ----------------------------------------------------------------------------- release assets
@@ -514,7 +521,7 @@ def test_cli_eval_checks_every_policy_folder_first(tmp_path, capsys, monkeypatch
     def no_eval(*args, **kwargs):
         raise AssertionError("the evaluation started before every policy folder was checked")
 
-    monkeypatch.setattr(H, "evaluate", no_eval)
+    monkeypatch.setattr(kevaluation, "evaluate", no_eval)
     _, bc, _ = _write_release(tmp_path)  # grasp_easy only
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -566,7 +573,7 @@ def test_cli_eval_policy_sources(tmp_path, capsys, monkeypatch):
                           "solved": False, "length": 3, "delta": 0.0, "jerk": 0.0} for d in config.delays]
         return {"episodes": rows, "compile_s": {}, "config": config}
 
-    monkeypatch.setattr(H, "evaluate", fake_evaluate)
+    monkeypatch.setattr(kevaluation, "evaluate", fake_evaluate)
     argv = ["kinetix", "eval", "--levels-dir", str(LEVELS_DIR), "--levels", "grasp_easy", "--episodes", "1",
             "--methods", "naive,inference_soft,train_hard", "--policy-dir", str(bc),
             "--method-policy", f"train_hard={tmp_path / 'hard'}", "--out", str(tmp_path / "out"), "--no-progress"]

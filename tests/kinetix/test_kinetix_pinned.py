@@ -29,7 +29,7 @@ def test_pooled_bootstrap_interval_is_the_specified_resampling():
     default_rng(seed).integers(0, n, (B, n)) and takes the 2.5% / 97.5% quantiles of the means."""
     pytest.importorskip("jax")
     pytest.importorskip("kinetix")
-    from softrtc.kinetix import harness as KH
+    from softrtc.kinetix import results as KH
 
     rng = np.random.default_rng(4)
     levels = [f"level{i}" for i in range(9)]
@@ -54,7 +54,7 @@ def test_main_table_columns_read_their_scope_and_metric():
     """KE-8, M-7: each column of the main table shows the pooled value of its own scope and metric."""
     pytest.importorskip("jax")
     pytest.importorskip("kinetix")
-    from softrtc.kinetix import harness as KH
+    from softrtc.kinetix import results as KH
 
     vals = {("overall", "return"): 1.111, ("overall", "solved"): 0.222, ("overall", "delta"): 0.333,
             ("overall", "jerk"): 0.444, ("high", "return"): 5.555, ("high", "solved"): 0.666,
@@ -127,7 +127,8 @@ def test_rollout_return_length_and_solved_cover_the_first_episode_only():
     import jax.numpy as jnp
 
     from softrtc.jax.policy import FlowPolicy, PolicyConfig
-    from softrtc.kinetix import harness as KH
+    from softrtc.kinetix import methods as KM
+    from softrtc.kinetix import rollout as KR
     from softrtc.reference import executor as ref_executor
 
     Hc, s, C, T = 8, 4, 6, 2
@@ -135,10 +136,10 @@ def test_rollout_return_length_and_solved_cover_the_first_episode_only():
     pol = FlowPolicy(obs_dim=3, action_dim=2, config=cfg, rngs=nnx.Rngs(0))
     graphdef, _ = nnx.split(pol)
     task = CountingTask(level=jnp.array([7, 1], jnp.int32), env=type("Env", (), {})())
-    fn = jax.jit(KH._build_rollout_fn(task, graphdef, "rtc", Hc, 2, s, T, C))
+    fn = jax.jit(KR._build_rollout_fn(task, graphdef, "rtc", Hc, 2, s, T, C))
     keys = jax.random.split(jax.random.key(0), 5)
     delays = jnp.arange(5, dtype=jnp.int32)
-    table = jnp.asarray(KH.rollout_weight_table(KH.parse_method("train_hard"), Hc, s))
+    table = jnp.asarray(KM.rollout_weight_table(KM.parse_method("train_hard"), Hc, s))
 
     def run(length, solved_episode):
         out = fn(nnx.state(pol), jnp.array([length, solved_episode], jnp.int32), table, keys, delays)
@@ -173,7 +174,9 @@ def test_evaluate_passes_each_levels_keys_and_delays_and_labels_rows(monkeypatch
 
     from softrtc.jax.policy import FlowPolicy, PolicyConfig
     from softrtc.kinetix import env as kenv
-    from softrtc.kinetix import harness as KH
+    from softrtc.kinetix import evaluation as KE
+    from softrtc.kinetix import protocol as KP
+    from softrtc.kinetix import rollout as KR
 
     seen = []
 
@@ -189,17 +192,17 @@ def test_evaluate_passes_each_levels_keys_and_delays_and_labels_rows(monkeypatch
             actions[:, :, 0] = np.arange(8)[None, :] * (1 + np.arange(n))[:, None]
             return {"actions": actions, "length": np.full(n, 8), "return": ret, "solved": ret % 2 == 1}
 
-    monkeypatch.setattr(KH, "make_rollout", lambda *a, **k: FakeRollout())
+    monkeypatch.setattr(KE, "make_rollout", lambda *a, **k: FakeRollout())
     pol = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM,
                      config=PolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1,
                                          action_chunk_size=8), rngs=nnx.Rngs(0))
     E, ds = 3, (0, 2, 4)
-    cfg = KH.EvalConfig(levels=("grasp_easy", "catapult"), methods=("naive",), delays=ds, episodes=E, seed=9,
+    cfg = KP.EvalConfig(levels=("grasp_easy", "catapult"), methods=("naive",), delays=ds, episodes=E, seed=9,
                         levels_dir=str(LEVELS_DIR))
-    res = KH.evaluate(cfg, pol, progress=False)
+    res = KE.evaluate(cfg, pol, progress=False)
     assert [(m, lv) for m, lv, _, _ in seen] == [("naive", "grasp_easy"), ("naive", "catapult")]
     for _, lv, keys, delays in seen:
-        want = np.asarray(jax.random.key_data(KH.episode_keys(9, lv, E)))
+        want = np.asarray(jax.random.key_data(KR.episode_keys(9, lv, E)))
         np.testing.assert_array_equal(keys, np.tile(want, (len(ds), 1)), err_msg=lv)
         np.testing.assert_array_equal(delays, np.repeat(ds, E))
     assert not np.array_equal(seen[0][2], seen[1][2])

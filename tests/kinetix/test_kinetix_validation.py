@@ -23,7 +23,11 @@ from softrtc.jax.policy import FlowPolicy, PolicyConfig  # noqa: E402
 from softrtc.kinetix import data as kdata  # noqa: E402
 from softrtc.kinetix import env as kenv  # noqa: E402
 from softrtc.kinetix import finetune as kft  # noqa: E402
-from softrtc.kinetix import harness as H  # noqa: E402
+from softrtc.kinetix.evaluation import episode_metrics, evaluate  # noqa: E402
+from softrtc.kinetix.methods import MethodSpec, parse_method  # noqa: E402
+from softrtc.kinetix.protocol import EvalConfig  # noqa: E402
+from softrtc.kinetix.results import main_table, summarize, write_results  # noqa: E402
+from softrtc.kinetix.rollout import make_rollout  # noqa: E402
 from tests.conftest import SHARED_LEVELS_REASON  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -98,32 +102,32 @@ def test_episode_metrics_dtypes():
     """[N-7], [KE-7]: episode_metrics rejects string, complex and bool arrays."""
     for bad in (np.array([["a", "b"], ["c", "d"]]), np.ones((3, 2), complex), np.ones((3, 2), bool), None):
         with pytest.raises(ValueError, match="actions"):
-            H.episode_metrics(bad, 2)
-    m = H.episode_metrics(np.arange(8.0).reshape(4, 2), 4)
+            episode_metrics(bad, 2)
+    m = episode_metrics(np.arange(8.0).reshape(4, 2), 4)
     assert m["delta"] == pytest.approx(2 * np.sqrt(2))  # |(2, 2)| per step
 
 
 def test_method_spec_label():
     """[KE-2], [KE-8]: a label that parses as a method string must match the spec's method and window."""
     with pytest.raises(ValueError, match="label"):
-        H.MethodSpec("naive", label="train_soft:delay_scaled:2")
+        MethodSpec("naive", label="train_soft:delay_scaled:2")
     with pytest.raises(ValueError, match="label"):
-        H.MethodSpec("train_hard", label="naive")
-    spec = H.parse_method("train_soft:delay_scaled:1")
-    assert H.MethodSpec("train_soft", spec.window, label="train_soft:delay_scaled:1.0") is not None
-    assert H.MethodSpec("naive", label="my baseline").display == "my baseline"
-    assert H.parse_method("train_soft").label == "train_soft"
+        MethodSpec("train_hard", label="naive")
+    spec = parse_method("train_soft:delay_scaled:1")
+    assert MethodSpec("train_soft", spec.window, label="train_soft:delay_scaled:1.0") is not None
+    assert MethodSpec("naive", label="my baseline").display == "my baseline"
+    assert parse_method("train_soft").label == "train_soft"
 
 
 def test_eval_config_entries():
     """[KE-1], [N-7]: unhashable levels/delays entries are a ValueError naming the field."""
     with pytest.raises(ValueError, match="levels"):
-        H.EvalConfig(levels=[["a"]])
+        EvalConfig(levels=[["a"]])
     with pytest.raises(ValueError, match="delays"):
-        H.EvalConfig(delays=[[0]])
+        EvalConfig(delays=[[0]])
     with pytest.raises(ValueError, match="delays"):
-        H.EvalConfig(delays=3)
-    assert H.EvalConfig(levels=["grasp_easy"], delays=[0, 1]).delays == (0, 1)
+        EvalConfig(delays=3)
+    assert EvalConfig(levels=["grasp_easy"], delays=[0, 1]).delays == (0, 1)
 
 
 def _row(**kw):
@@ -135,28 +139,28 @@ def _row(**kw):
 def test_summarize_and_main_table(tmp_path):
     """[KE-7], [KE-8], [N-7]: bad rows or summaries raise ValueError naming the argument or key."""
     with pytest.raises(ValueError, match="rows"):
-        H.summarize(5)
+        summarize(5)
     for kw in ({"return": None}, {"return": 1j}, {"method": ["a"]}, {"jerk": "x"}):
         with pytest.raises(ValueError, match="rows\\[0\\]"):
-            H.summarize([_row(**kw)])
+            summarize([_row(**kw)])
     with pytest.raises(ValueError, match="pooled"):
-        H.main_table({"pooled": [{}]})
+        main_table({"pooled": [{}]})
     with pytest.raises(ValueError, match="pooled"):
-        H.main_table({"pooled": 5})
+        main_table({"pooled": 5})
     # write_results: bad rows create nothing; a file as out_dir is rejected up front
     out = tmp_path / "new"
     with pytest.raises(ValueError, match="rows"):
-        H.write_results({"episodes": [_row(**{"return": None})]}, out, bootstrap_resamples=10)
+        write_results({"episodes": [_row(**{"return": None})]}, out, bootstrap_resamples=10)
     assert not out.exists()
     f = tmp_path / "file"
     f.write_text("x")
     with pytest.raises(ValueError, match="out_dir"):
-        H.write_results({"episodes": [_row()]}, f, bootstrap_resamples=10)
+        write_results({"episodes": [_row()]}, f, bootstrap_resamples=10)
     with pytest.raises(ValueError, match="out_dir"):
-        H.write_results({"episodes": [_row()]}, f / "sub", bootstrap_resamples=10)
-    summary = H.summarize([_row(), _row(delay=3)], bootstrap_resamples=10)
-    assert "| Naive |" in H.main_table(summary) or "Naive" in H.main_table(summary)
-    paths = H.write_results({"episodes": [_row()]}, out, bootstrap_resamples=10)
+        write_results({"episodes": [_row()]}, f / "sub", bootstrap_resamples=10)
+    summary = summarize([_row(), _row(delay=3)], bootstrap_resamples=10)
+    assert "| Naive |" in main_table(summary) or "Naive" in main_table(summary)
+    paths = write_results({"episodes": [_row()]}, out, bootstrap_resamples=10)
     assert Path(paths["table"]).is_file()
 
 
@@ -164,11 +168,11 @@ def test_evaluate_has_no_log_parameter():
     """[KE-1], [N-7]: evaluate takes no unused ``log`` argument; a bad config names ``config``."""
     import inspect
 
-    assert "log" not in inspect.signature(H.evaluate).parameters
+    assert "log" not in inspect.signature(evaluate).parameters
     with pytest.raises(ValueError, match="config"):
-        H.evaluate(None, None)
+        evaluate(None, None)
     with pytest.raises(ValueError, match="progress"):
-        H.evaluate(H.EvalConfig(levels=["grasp_easy"]), None, progress=1)
+        evaluate(EvalConfig(levels=["grasp_easy"]), None, progress=1)
 
 
 def test_release_policy_files(tmp_path):
@@ -267,15 +271,15 @@ def test_rollout_delays_and_devices(task):
                                          action_chunk_size=8), rngs=nnx.Rngs(0))
     for bad in (5, ["cpu"], "cpu"):
         with pytest.raises(ValueError, match="devices"):
-            H.make_rollout(task, pol, "rtc", 2, episode_steps=8, devices=bad)
-    ro = H.make_rollout(task, pol, "rtc", 2, episode_steps=8, devices=jax.devices()[:1])
+            make_rollout(task, pol, "rtc", 2, episode_steps=8, devices=bad)
+    ro = make_rollout(task, pol, "rtc", 2, episode_steps=8, devices=jax.devices()[:1])
     keys = jax.random.split(jax.random.key(0), 2)
     for d in (3, None, np.array(2), np.array([0, 9]), np.array([0.0, 1.0])):
         with pytest.raises(ValueError, match="delays"):
-            ro(pol, H.MethodSpec("naive"), "grasp_easy", keys, d)
+            ro(pol, MethodSpec("naive"), "grasp_easy", keys, d)
         with pytest.raises(ValueError, match="delays"):
-            ro.compile(pol, H.MethodSpec("naive"), "grasp_easy", keys, d)
-    args = ro._args(pol, H.MethodSpec("naive"), "grasp_easy", keys, np.array([0, 1]))
+            ro.compile(pol, MethodSpec("naive"), "grasp_easy", keys, d)
+    args = ro._args(pol, MethodSpec("naive"), "grasp_easy", keys, np.array([0, 1]))
     assert args[-1].shape == (2,)
 
 
