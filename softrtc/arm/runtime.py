@@ -8,8 +8,9 @@ from the previous chunk ([R-4]). A chunk that misses the buffered actions is
 rejected and the arm holds its last command ([R-5], [R-6]); a crashed worker
 ends the episode cleanly ([R-7]).
 
-Every wall-clock read is ``time.perf_counter``; the simulation itself never
-reads a clock ([A-4]).
+Every read of time and every wait goes through a clock ([R-10]): the wall
+clock by default, or :class:`softrtc.arm.clock.SimulatedClock`, on which the
+timeline is deterministic. The simulation itself never reads a clock ([A-4]).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import dataclasses
 import math
 import queue
 import threading
-import time
 import traceback
 
 import jax
@@ -26,6 +26,7 @@ import numpy as np
 
 from softrtc.jax import executor as jexec
 
+from .clock import WallClock
 from .env import ACTION_DIM, ArmConfig, ArmSortEnv, _check_env_config
 from .executor import EpisodeRecord
 
@@ -48,10 +49,32 @@ def _seconds(name: str, v, lo: float, hi: float) -> float:
     return float(v)
 
 
-def _chunk_ok(chunk, H: int) -> bool:
-    """A policy chunk the runtime may execute: shape (H, ACTION_DIM), real dtype, finite ([R-7])."""
-    return (isinstance(chunk, np.ndarray) and chunk.shape == (H, ACTION_DIM) and chunk.dtype.kind in "iuf"
-            and bool(np.all(np.isfinite(chunk))))
+def checked_chunk(chunk, H: int, low, high) -> tuple:
+    """``(chunk as float64, None)`` for a chunk the runtime may execute, else ``(None, reason)`` ([R-7]).
+
+    Executable: a real (integer or float) array of shape ``(H, ACTION_DIM)``,
+    finite and within the action bounds ``[low, high]`` of [A-8]. The dtype is
+    checked before any cast, so a complex, string or boolean chunk is refused,
+    not converted (NumPy would drop an imaginary part, parse strings, read
+    booleans as 0 and 1). Never raises.
+    """
+    try:
+        raw = np.asarray(chunk)
+    except Exception as exc:  # noqa: BLE001 - a ragged or exotic return value is the model's fault
+        return None, f"is not an array ({type(exc).__name__})"
+    if raw.dtype.kind not in "iuf":
+        return None, f"has dtype {raw.dtype} (not a real number type)"
+    if raw.shape != (H, ACTION_DIM):
+        return None, f"has shape {list(raw.shape)}, not [{H}, {ACTION_DIM}]"
+    a = raw.astype(np.float64)
+    if not np.all(np.isfinite(a)):
+        return None, "has non-finite values"
+    out = (a < low) | (a > high)
+    if np.any(out):
+        j, i = (int(x) for x in np.argwhere(out)[0])
+        return None, (f"has token {j} action[{i}] = {float(a[j, i])!r} outside its range "
+                      f"[{float(low[i])!r}, {float(high[i])!r}]")
+    return a, None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,10 +140,10 @@ def jitter_summary(periods_s) -> dict:
 class _Worker(threading.Thread):
     """Inference thread: one request at a time; results and exceptions go to ``out`` ([R-1], [R-7])."""
 
-    def __init__(self, policy, out: queue.Queue):
+    def __init__(self, policy, out: queue.Queue, clock, H: int, low, high):
         super().__init__(daemon=True, name="softrtc-arm-inference")
-        self.policy, self.out = policy, out
-        self.s = policy.s
+        self.policy, self.out, self.clock = policy, out, clock
+        self.s, self.H, self.low, self.high = policy.s, H, low, high
         self.requests: queue.Queue = queue.Queue()
 
     def warm(self, H: int) -> None:
@@ -139,29 +162,30 @@ class _Worker(threading.Thread):
                 # Keys and priors are computed here so the control thread never dispatches JAX work.
                 key = jax.random.fold_in(key, c)
                 prior = None if prev is None else np.asarray(jexec.shift_prior(prev, self.s), np.float64)
-                chunk = np.asarray(self.policy.generate(obs, prior, d, key), np.float64)
-                t_compute = time.perf_counter() - t_req
+                # [R-7] checked before any cast: the chunk or why it cannot run.
+                chunk, problem = checked_chunk(self.policy.generate(obs, prior, d, key), self.H, self.low,
+                                               self.high)
+                t_compute = self.clock.now() - t_req
                 # Holding the result back plays a slower model; it does not block the control loop.
                 if extra > 0:
-                    time.sleep(extra)
-                self.out.put(("chunk", c, chunk, time.perf_counter(), t_compute))
+                    self.clock.sleep(extra)
+                self.out.put(("chunk", c, (chunk, problem), self.clock.now(), t_compute))
             except BaseException as exc:  # noqa: BLE001 - any failure of the worker is reported, never raised here
-                self.out.put(("error", c, f"{type(exc).__name__}: {exc}", time.perf_counter(),
+                self.out.put(("error", c, f"{type(exc).__name__}: {exc}", self.clock.now(),
                               traceback.format_exc()))
                 return
+            finally:
+                self.clock.task_done()  # after the answer is posted
 
 
-def _sleep_until(t: float) -> None:
-    while True:
-        rest = t - time.perf_counter()
-        if rest <= 0:
-            return
-        time.sleep(rest)
+# How often the control thread looks for the first chunk while it waits for it ([R-2]).
+_FIRST_POLL_S = 0.001
+_CLOCK_METHODS = ("now", "sleep_until", "sleep", "task_started", "task_done", "join")
 
 
 def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = RuntimeConfig(), *,
                          max_steps: int | None = None, env_config: ArmConfig | None = None,
-                         added_latency=None) -> EpisodeRecord:
+                         added_latency=None, clock=None) -> EpisodeRecord:
     """One arm episode in the real-time runtime ([R-1]..[R-9]).
 
     ``policy`` has ``H``, ``s`` and ``generate(obs, prior, d, key)``; request
@@ -173,7 +197,10 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
     (after the worker is stopped). An exception raised by ``generate`` is a
     worker crash ([R-7]). The episode ends when the environment is done
     ([A-11]), after ``max_steps`` ticks, or at a fault ([R-6], [R-7]).
-    Outcomes depend on wall-clock timing and are not bitwise reproducible.
+    ``clock`` (default :class:`~softrtc.arm.clock.WallClock`) is what the
+    runtime reads time from and waits on ([R-10]); on the wall clock outcomes
+    depend on timing and are not bitwise reproducible, on a
+    :class:`~softrtc.arm.clock.SimulatedClock` they are.
     """
     H = getattr(policy, "H", None)
     s = getattr(policy, "s", None)
@@ -191,6 +218,10 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
         raise ValueError(f"config must be a RuntimeConfig, got {type(config).__name__}")
     if added_latency is not None and not callable(added_latency):
         raise ValueError("added_latency must be None or a callable c -> seconds")
+    clock = WallClock() if clock is None else clock
+    if isinstance(clock, type) or not all(callable(getattr(clock, m, None)) for m in _CLOCK_METHODS):
+        raise ValueError(f"clock must provide {', '.join(_CLOCK_METHODS)} (softrtc.arm.clock), "
+                         f"got {type(clock).__name__}")
     env = ArmSortEnv(_check_env_config(env_config, "env_config"))
     limit = env.config.max_steps if max_steps is None else max_steps
     if isinstance(limit, bool) or not isinstance(limit, (int, np.integer)) or not 1 <= limit <= env.config.max_steps:
@@ -199,7 +230,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
     d_max = min(s, H - s)
 
     results: queue.Queue = queue.Queue()
-    worker = _Worker(policy, results)
+    worker = _Worker(policy, results, clock, H, env.action_low, env.action_high)
 
     def extra_latency(c: int) -> float:
         # [R-8] the caller's per-request latency, checked here: a bad value is the caller's error, not a worker crash.
@@ -222,7 +253,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
 
     def request(c, obs, prev, d, tick):
         extra = extra_latency(c)
-        t_req = time.perf_counter()
+        t_req = clock.now()
         t_req_of[c] = t_req
         in_flight.add(c)
         chunks.append(None)
@@ -232,23 +263,29 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
         d_real.append(-1)
         lat.append(float("nan"))
         accepted.append(False)
+        clock.task_started()  # before the hand-over, so a simulated clock never runs ahead of the worker
         worker.requests.put((c, np.array(obs), None if prev is None else np.array(prev), d, key, t_req, extra))
 
     obs = env.reset(int(env_seed))
     try:
         # [X-2] / [R-2] start: request 0 (d = 0, no prior); the clock starts when it is back.
         request(0, obs, None, 0, 0)
-        msg = results.get()
+        while True:
+            try:
+                msg = results.get_nowait()
+                break
+            except queue.Empty:
+                clock.sleep_until(clock.now() + _FIRST_POLL_S)
         in_flight.discard(0)
         if msg[0] == "error":
             fault = f"worker_error: {msg[2]}"
             events.append((0, "worker_error", msg[4]))
             raise _End
-        _, _, chunk0, t_done, _ = msg
+        _, _, (chunk0, problem), t_done, _ = msg
         lat[0] = t_done - t_req_of[0]
-        if not _chunk_ok(chunk0, H):
+        if problem is not None:
             # [R-7] a chunk the runtime cannot execute is a model fault: recorded, never raised.
-            fault = f"worker_error: chunk 0 has shape {list(np.shape(chunk0))} or non-finite values"
+            fault = f"worker_error: chunk 0 {problem}"
             events.append((0, "bad_chunk", 0))
             raise _End
         chunks[0] = chunk0
@@ -262,12 +299,12 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
         last_cmd = None
         holds_in_row = 0
         next_c = 1
-        T0 = time.perf_counter()
+        T0 = clock.now()
         last_tick_time = None
         k = 0
         while not env.done and k < limit:
-            _sleep_until(T0 + k * dt)
-            now = time.perf_counter()
+            clock.sleep_until(T0 + k * dt)
+            now = clock.now()
             if last_tick_time is not None:
                 periods.append(now - last_tick_time)
             last_tick_time = now
@@ -282,10 +319,10 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
                     fault = f"worker_error: {msg[2]}"
                     events.append((k, "worker_error", msg[4]))
                     break
-                _, c, chunk, t_done, _ = msg
+                _, c, (chunk, problem), t_done, _ = msg
                 in_flight.discard(c)
                 lat[c] = t_done - t_req_of[c]
-                good = _chunk_ok(chunk, H)
+                good = problem is None
                 if good:
                     chunks[c] = chunk
                 if pending is None or pending[0] != c:
@@ -296,7 +333,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
                 d_real[c] = dr
                 recent = (recent + [dr])[-config.latency_window:]
                 if not good:
-                    fault = f"worker_error: chunk {c} has shape {list(np.shape(chunk))} or non-finite values"
+                    fault = f"worker_error: chunk {c} {problem}"
                     events.append((k, "bad_chunk", c))
                     break
                 # [R-4] execute from the previous chunk for max(predicted, realized) ticks.
@@ -371,8 +408,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
         pass
     finally:
         worker.requests.put(None)
-        worker.join(timeout=config.join_timeout_s)
-        if worker.is_alive():
+        if not clock.join(worker, config.join_timeout_s):
             events.append((len(actions), "worker_not_joined", None))
 
     n = len(actions)

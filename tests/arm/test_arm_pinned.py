@@ -2,16 +2,14 @@
 
 What the simulated-delay executor hands the policy for every request (prior,
 delay, key); the real-time runtime's realized, predicted and executed delays,
-switch ticks, late rejection, hold ticks and stall length, measured with a
-policy whose answers are released at chosen control ticks so that the timeline
-is deterministic; the study table's object count.
+switch ticks, late rejection, hold ticks and stall length, on a simulated
+clock ([R-10]) that brings each answer back at a chosen control tick, so that
+the timeline is deterministic; the study table's object count.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -83,87 +81,54 @@ def test_simulated_executor_hands_each_request_its_prior_delay_and_key():
 # ----------------------------------------------------------------------------- arm: real-time runtime
 
 
-class _Gate:
-    """Releases the answer to request c right after the control tick r_c + D_c - 1 has stepped the env,
-    so that it is available at the start of tick r_c + D_c: a realized delay of exactly D_c ticks."""
+class _StampedPolicy:
+    """Chunks distinct per request; records the prior and delay each request received."""
 
-    def __init__(self, realized):
-        self.realized = realized
-        self.req_tick, self.release, self.returned = {}, {}, {}
-        self.env = None
+    method = "stamped"
 
-    def latency(self, c):
-        # Called in the control thread when request c is made ([R-8]), before that tick's env step.
-        self.req_tick[c] = 0 if self.env is None else self.env.t
-        self.release[c], self.returned[c] = threading.Event(), threading.Event()
-        return 0.0
-
-    def after_step(self, t):
-        for c, r in list(self.req_tick.items()):
-            if c >= 1 and r + self.realized(c) == t and not self.release[c].is_set():
-                self.release[c].set()
-                self.returned[c].wait(2.0)
-                time.sleep(0.05)  # lets the worker hand the chunk over before the next tick starts, under load too
-
-
-class _GatedPolicy:
-    method = "gated"
-
-    def __init__(self, gate, H=10, s=5):
-        self.gate, self.H, self.s = gate, H, s
+    def __init__(self, H=10, s=5):
+        self.H, self.s = H, s
         self.calls = []
 
     def generate(self, obs, prior, d, key):
         c = len(self.calls)
         self.calls.append((None if prior is None else np.array(prior), d))
-        if c >= 1:
-            self.gate.release[c].wait(5.0)
         j = np.arange(1, self.H + 1)[:, None]
-        out = np.concatenate([np.asarray(obs[0:3]) + 0.002 * j + 1e-4 * c, np.full((self.H, 1), 0.1 * (c % 5))],
-                             axis=1)
-        if c >= 1:
-            self.gate.returned[c].set()
-        return out
+        return np.concatenate([np.asarray(obs[0:3]) + 0.002 * j + 1e-4 * c, np.full((self.H, 1), 0.1 * (c % 5))],
+                              axis=1)
 
 
-def _gated_episode(monkeypatch, realized, max_steps):
+def _timed_episode(realized, max_steps):
+    """On a simulated clock ([R-10]) request c >= 1 is back after exactly realized(c) ticks (its latency is
+    realized(c) - 1/2 ticks); request 0 after half a tick."""
     import jax
 
     from softrtc.arm import runtime as R
+    from softrtc.arm.clock import SimulatedClock
 
-    gate = _Gate(realized)
-
-    class GatedEnv(R.ArmSortEnv):
-        def reset(self, seed):
-            gate.env = self
-            return super().reset(seed)
-
-        def step(self, action):
-            out = super().step(action)
-            gate.after_step(self.t)
-            return out
-
-    monkeypatch.setattr(R, "ArmSortEnv", GatedEnv)
-    pol = _GatedPolicy(gate)
+    dt = 0.02
+    pol = _StampedPolicy()
     rec = R.run_realtime_episode(pol, 3, jax.random.key(0), R.RuntimeConfig(added_latency_s=0.0),
-                                 max_steps=max_steps, added_latency=gate.latency)
+                                 max_steps=max_steps, added_latency=lambda c: (realized(c) - 0.5) * dt if c else dt / 2,
+                                 clock=SimulatedClock())
     return rec, pol
 
 
-def test_runtime_delays_switches_and_late_chunk_on_a_gated_timeline(monkeypatch):
-    """R-2, R-3, R-4, R-5, R-9, A-23: realized delay k - r, prediction from the window, executed prefix
+def test_runtime_delays_switches_and_late_chunk_on_a_simulated_timeline():
+    """R-2, R-3, R-4, R-5, R-9, R-10, A-23: realized delay k - r, prediction from the window, executed prefix
     max(predicted, realized), switch at r + that, a chunk not back by r + min(s, H - s) rejected with -2,
     holds until a fresh request (no prior, d = 0) is back, and the delay given to the sampler is the one logged."""
     pytest.importorskip("pymunk")
     dmax, window = 5, 5
     wanted = {1: 3, 2: 1, 3: 2, 4: 6}  # request 4 comes back at 6 > dmax ticks: late
-    rec, pol = _gated_episode(monkeypatch, lambda c: wanted.get(c, 2), 45)
+    rec, pol = _timed_episode(lambda c: wanted.get(c, 2), 45)
     assert rec.fault is None and rec.steps == 45
     assert list(rec.request_step) == [0, 5, 10, 15, 20, 26, 31, 36, 41]
     assert list(rec.realized_delays) == [0, 3, 1, 2, -2, 2, 2, 2, 2]
     assert list(rec.accepted) == [True, True, True, True, False, True, True, True, True]
     # [R-3] written out: the first latency in ticks, then every accepted chunk's realized delay.
     recent = [math.ceil(rec.latencies_s[0] / rec.dt)]
+    assert recent == [1]
     for c in range(1, len(rec.chunks)):
         restart = c == 5
         pred = 0 if restart else min(max(1, max(recent[-window:])), dmax)
@@ -182,31 +147,24 @@ def test_runtime_delays_switches_and_late_chunk_on_a_gated_timeline(monkeypatch)
     assert rec.delays[2] == 3 and rec.exec_delays[2] == 3
     # [R-5]: late at tick 20 + 5; holds until the restart chunk (requested at 26, back at 28) takes over.
     assert list(np.nonzero(rec.hold)[0]) == [25, 26, 27]
-    assert ("late_reject" in [e[1] for e in rec.events]) and (25, "late_reject", 4) in rec.events
+    assert (25, "late_reject", 4) in rec.events and (26, "restart_request", 5) in rec.events
 
 
 def test_runtime_stall_ends_after_exactly_max_hold_ticks():
-    """R-6, R-5: the episode ends with fault stall after exactly max_hold_ticks consecutive hold ticks."""
+    """R-6, R-5, R-10: the episode ends with fault stall after exactly max_hold_ticks consecutive hold ticks."""
     pytest.importorskip("pymunk")
     import jax
 
+    from softrtc.arm.clock import SimulatedClock
     from softrtc.arm.runtime import RuntimeConfig, run_realtime_episode
-
-    class Fast:
-        method, H, s = "fast", 10, 5
-
-        def generate(self, obs, prior, d, key):
-            j = np.arange(1, 11)[:, None]
-            return np.concatenate([np.asarray(obs[0:3]) + 0.002 * j, np.full((10, 1), 0.2)], axis=1)
 
     cfg = RuntimeConfig(max_hold_ticks=10, join_timeout_s=3.0)
     # Request 2 (tick 10) takes 0.8 s: late at tick 15, and the worker stays busy far past tick 25.
-    rec = run_realtime_episode(Fast(), 5, jax.random.key(2), cfg, max_steps=200,
-                               added_latency=lambda c: 0.8 if c >= 2 else 0.0)
-    assert rec.fault is not None and rec.fault.startswith("stall")
+    rec = run_realtime_episode(_StampedPolicy(), 5, jax.random.key(2), cfg, max_steps=200,
+                               added_latency=lambda c: 0.8 if c >= 2 else 0.0, clock=SimulatedClock())
+    assert rec.fault == "stall: 10 consecutive hold ticks"
     run = len(rec.hold) - np.nonzero(~rec.hold)[0][-1] - 1  # trailing consecutive holds
-    assert run == 10 and rec.fault == "stall: 10 consecutive hold ticks"
-    assert rec.steps == np.nonzero(rec.hold)[0][0] + 10
+    assert run == 10 and rec.steps == 25 == np.nonzero(rec.hold)[0][0] + 10
 
 
 # ----------------------------------------------------------------------------- arm: study table
