@@ -121,5 +121,13 @@ def load_policies(checkpoint_dir=None, methods=STUDY_METHODS) -> dict:
         f = folder / CKPT_FILES.get(m, "base.npz")
         if not f.is_file():
             raise ValueError(f"checkpoint {str(f)!r} is missing; run `softrtc arm train --out {folder}`")
-        out[m] = load_arm_checkpoint(f, sampler_method=m)
+        pol = load_arm_checkpoint(f, sampler_method=m)
+        # Each file holds the role its name says: a fine-tune copied over base.npz would otherwise run
+        # as the base, under the base's label, without notice.
+        role = "train_hard" if m == "train_hard" else "train_soft" if m == "train_soft" else "naive"
+        if pol.trained_as != role:
+            raise ValueError(f"checkpoint {str(f)!r} was trained as {pol.trained_as!r} (its stored training "
+                             f"method), but {f.name} must hold the policy trained as {role!r}, which method "
+                             f"{m!r} runs")
+        out[m] = pol
     return out

@@ -19,6 +19,7 @@ from softrtc.arm.policies import untrained_policy  # noqa: E402
 from softrtc.arm.policy_config import ArmPolicyConfig  # noqa: E402
 from softrtc.arm.training import train_arm_policies  # noqa: E402
 from softrtc.arm.runtime import RuntimeConfig, jitter_summary, run_realtime_episode  # noqa: E402
+from softrtc.arm.clock import SimulatedClock  # noqa: E402
 from softrtc.arm import study  # noqa: E402
 
 HUGE = 10**400
@@ -179,7 +180,7 @@ def test_runtime_bad_chunks_are_faults(obs):
     cfg = ArmConfig(max_steps=40)
     for bad in (np.zeros((2, 4)), np.zeros((4, 3)), np.full((4, 4), np.nan)):
         for at in (0, 1):
-            rec = run_realtime_episode(_ChunkPolicy(bad, at), 0, k, rc, env_config=cfg)
+            rec = run_realtime_episode(_ChunkPolicy(bad, at), 0, k, rc, env_config=cfg, clock=SimulatedClock())
             assert rec.fault is not None and rec.fault.startswith("worker_error"), rec.fault
             assert any(e[1] == "bad_chunk" for e in rec.events)
     _raises("key", run_realtime_episode, _ChunkPolicy(None, -1), 0, jax.random.split(k, 2), rc, env_config=cfg)
@@ -187,5 +188,36 @@ def test_runtime_bad_chunks_are_faults(obs):
     _raises("added_latency", run_realtime_episode, _ChunkPolicy(None, -1), 0, k, rc, env_config=cfg,
             added_latency=lambda c: HUGE)
     # valid: np.int64 H and s are accepted
-    rec = run_realtime_episode(_ChunkPolicy(None, -1), 0, k, rc, max_steps=10, env_config=cfg)
+    rec = run_realtime_episode(_ChunkPolicy(None, -1), 0, k, rc, max_steps=10, env_config=cfg, clock=SimulatedClock())
     assert rec.fault is None and rec.steps == 10
+
+
+def test_study_refuses_a_checkpoint_in_the_wrong_role(tmp_path, capsys):
+    """[A-21] [A-25] A Train Soft checkpoint copied to base.npz is refused by its stored training method, by the
+    library and by `softrtc arm study`, with the file and both methods named; the shipped folder loads."""
+    import shutil
+
+    from softrtc.arm.checkpoints import default_checkpoint_dir
+    from softrtc.cli import main
+
+    src = default_checkpoint_dir()
+    for name in ("base", "train_hard", "train_soft"):
+        shutil.copy(src / f"{name}.npz", tmp_path / f"{name}.npz")
+    shutil.copy(src / "train_soft.npz", tmp_path / "base.npz")
+    want = (f"checkpoint {str(tmp_path / 'base.npz')!r} was trained as 'train_soft' (its stored training method), "
+            f"but base.npz must hold the policy trained as 'naive', which method 'naive' runs")
+    with pytest.raises(ValueError) as info:
+        load_policies(tmp_path, ["train_hard", "naive"])
+    assert str(info.value) == want
+    with pytest.raises(ValueError, match="which method 'inference_soft' runs$"):
+        load_policies(tmp_path, ["inference_soft"])
+    assert main(["arm", "study", "--checkpoints", str(tmp_path), "--trials", "1", "--out",
+                 str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f"softrtc arm study: error: {want}"
+    assert not (tmp_path / "out").exists()  # refused before any trial ran
+    shutil.copy(src / "train_hard.npz", tmp_path / "train_soft.npz")
+    with pytest.raises(ValueError, match="was trained as 'train_hard'.*train_soft.npz must hold the policy trained "
+                                         "as 'train_soft'"):
+        load_policies(tmp_path, ["train_soft"])
+    pols = load_policies(src, ["naive", "inference_hard", "train_hard", "train_soft"])
+    assert [p.trained_as for p in pols.values()] == ["naive", "naive", "train_hard", "train_soft"]
