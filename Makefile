@@ -1,6 +1,6 @@
 # Two entry points that do all set-up on a fresh machine:
 #   make demo   creates .venv, installs softrtc with every extra, runs the main job
-#   make test   creates .venv, installs, runs the whole test suite
+#   make test   creates .venv, installs (LeRobot's RTC modules too), runs the whole test suite
 PYTHON ?= python3.11
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -16,12 +16,20 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e ".[all]"
 	touch $(STAMP)
 
+# LeRobot's RTC modules for its conformance adapter (spec/41-thirdparty.md [TP-6]): without its declared
+# dependencies, which pin torch<2.11 and bring its dataset and vision stack; its RTC code imports only torch.
+LEROBOT_STAMP := $(VENV)/.lerobot-0.4.4
+
+$(LEROBOT_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet --no-deps "lerobot==0.4.4"
+	touch $(LEROBOT_STAMP)
+
 venv: $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/softrtc demo
 
-test: $(STAMP)
+test: $(STAMP) $(LEROBOT_STAMP)
 	SOFTRTC_REQUIRE_ALL=1 $(PY) -m pytest -q
 
 clean:

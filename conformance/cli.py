@@ -1,4 +1,4 @@
-"""`softrtc conformance run|generate` ([CF-19]); registered by softrtc/cli.py through add_subparsers.
+"""`softrtc conformance run|generate|report` ([CF-19], [TP-1]); registered by softrtc/cli.py through add_subparsers.
 
 Also runnable without the main CLI: ``python -m softrtc.conformance run --impl reference``.
 """
@@ -9,7 +9,7 @@ import argparse
 import sys
 
 from .._cli_util import group_help, leaf_progs
-from . import generate, runner
+from . import generate, report, runner
 
 
 def add_subparsers(subparsers) -> None:
@@ -29,6 +29,10 @@ def _fill(conf: argparse.ArgumentParser) -> None:
     gen_p = sub.add_parser("generate", help="regenerate the vector files from the NumPy reference")
     generate.add_arguments(gen_p)
     gen_p.set_defaults(func=generate.run_from_args)
+    rep_p = sub.add_parser("report", help="compatibility report of a third-party implementation (lerobot): "
+                                          "write it, --check it, or print its README --summary")
+    report.add_arguments(rep_p)
+    rep_p.set_defaults(func=report.run_from_args)
 
 
 def demo() -> int:
