@@ -21,6 +21,9 @@ for _dep in ("jax", "flax", "kinetix"):
 
 
 SEED_MAX = 2**31 - 1
+# [KE-10] Release policies are pickles: loading one runs whatever code the file holds.
+TRUSTED_FILES = ("The .pkl files are unpickled, which can run code stored in them: "
+                 "load only files from a source you trust.")
 _levels = comma_list("value")
 _methods = comma_list("value")
 _delays = comma_list("value", int_in("each delay", 0, 4096))
@@ -66,12 +69,12 @@ def add_subparsers(subparsers) -> None:
     src = ev.add_mutually_exclusive_group()
     src.add_argument("--policy-dir", type=input_dir(), default=None,
                      help="per-level policies of every method without --method-policy: <level>.npz checkpoints "
-                          "or release worlds_l_<level>.pkl files (e.g. the release's bc/24)")
+                          "or release worlds_l_<level>.pkl files (e.g. the release's bc/24). " + TRUSTED_FILES)
     src.add_argument("--init-seed", type=int_in("value", 0, SEED_MAX), default=None,
                      help="evaluate a freshly initialised benchmark-size policy with this seed (default 0)")
     ev.add_argument("--method-policy", action="append", default=[], metavar="METHOD=DIR",
                     help="policy directory for one method (e.g. train_hard=ft/hard), overriding --policy-dir; "
-                         "repeatable, once per method")
+                         "repeatable, once per method. " + TRUSTED_FILES)
     ev.add_argument("--levels-dir", type=input_dir(), default=None,
                     help="directory of the level JSON files (default: ../shared/kinetix-levels)")
     ev.add_argument("--seed", type=int_in("value", 0, SEED_MAX), default=0, help="rollout seed (default 0)")
@@ -82,7 +85,8 @@ def add_subparsers(subparsers) -> None:
     ft = sub.add_parser("finetune", help="fine-tune release bc policies as hard or soft training-time RTC "
                                          "(one epoch by default)")
     ft.add_argument("--data", type=input_dir(), required=True, help="directory of worlds_l_<level>.npz expert data")
-    ft.add_argument("--bc", type=input_dir(), required=True, help="release bc directory (worlds_l_<level>.pkl files)")
+    ft.add_argument("--bc", type=input_dir(), required=True,
+                    help="release bc directory (worlds_l_<level>.pkl files). " + TRUSTED_FILES)
     ft.add_argument("--method", required=True, choices=("hard", "soft"), help="training-time RTC variant")
     ft.add_argument("--window", type=nonempty(), default=None,
                     help="soft window rule: delay_scaled:LAM[:H_MAX] (default delay_scaled:2:5), offset:L[:H_MAX], "

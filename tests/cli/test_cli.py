@@ -301,3 +301,26 @@ def test_cli_stops_quietly_when_its_reader_goes_away():
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def test_pickle_loaders_warn_that_files_must_be_trusted(capsys):
+    """KE-10, P-8: every option that unpickles release policies says in its --help that unpickling can run code
+    and only trusted files may be loaded; so does the README's Kinetix section."""
+    pytest.importorskip("kinetix")
+    warning = "The .pkl files are unpickled, which can run code stored in them: load only files from a source " \
+              "you trust."
+    for argv, options in ((["kinetix", "eval", "--help"], ("--policy-dir", "--method-policy")),
+                          (["kinetix", "finetune", "--help"], ("--bc",))):
+        assert status(argv) == 0
+        blocks, current = {}, None
+        for line in capsys.readouterr().out.splitlines():
+            if line.startswith("  -"):  # an option's first line; its help continues on indented lines
+                current = line.split()[0]
+                blocks[current] = []
+            if current is not None:
+                blocks[current].append(line.strip())
+        for option in options:
+            text = " ".join(" ".join(blocks[option]).split())  # argparse wraps lines
+            assert text.endswith(warning), (option, text)
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert "so load only files from a source you trust" in readme and "unpickling can run code" in readme
