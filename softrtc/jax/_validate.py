@@ -113,8 +113,9 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
             raise ValueError(f"{name} must be a numeric array, got a boolean")
         try:
             kind = np.asarray(value).dtype.kind
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{name} must be a numeric array, got {type(value).__name__}") from exc
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise ValueError(f"{name} must be a numeric array, got a ragged or non-numeric "
+                             f"{type(value).__name__}") from exc
         if kind not in "iuf":  # booleans, complex numbers, strings and objects are not real arrays
             raise ValueError(f"{name} must be a real numeric array, got dtype {np.asarray(value).dtype}")
         raw = np.asarray(value)
@@ -153,7 +154,11 @@ def int_array(name: str, value, shape: tuple | None = None, lo: int | None = Non
     if not is_traced(value):
         if _holds_bool(value):  # np.asarray would read True among integers as 1
             raise ValueError(f"{name} must be an integer array, got a boolean entry")
-        v = np.asarray(value)
+        try:
+            v = np.asarray(value)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise ValueError(f"{name} must be an integer array, got a ragged or non-numeric "
+                             f"{type(value).__name__}") from exc
         if v.dtype == bool or not np.issubdtype(v.dtype, np.integer):
             raise ValueError(f"{name} must be an integer array, got dtype {v.dtype}")
         # The values become int32: open bounds are int32's own, so nothing wraps.

@@ -374,3 +374,20 @@ def test_sampler_shapes_named_by_the_samplers_arguments():
         with pytest.raises(ValueError, match=rf"^obs must have the model's shape \[B, O={O}\], got \[{B}, 5\]$"):
             call(jnp.zeros((B, 5)), X)
         assert call(OBS, X).shape == (B, H, A), name
+
+
+def test_metrics_name_ragged_arguments():
+    """[M-1] [M-3] [M-5] [M-6] [N-7] Ragged lists given to the JAX metrics name the argument (actions,
+    chunk_index, values, indices), as the reference does, instead of NumPy's inhomogeneous-shape message."""
+    from softrtc.jax import metrics as JMt
+
+    cases = [(lambda: JMt.action_delta([[0.0, 1.0], [1.0]]), r"^actions must be a numeric array, got a ragged"),
+             (lambda: JMt.boundary_jump(np.zeros((3, 2)), [[0], [1, 2]]),
+              r"^chunk_index must be an integer array, got a ragged or non-numeric list$"),
+             (lambda: JMt.standard_error([[1.0], [2.0, 3.0]]), r"^values must be a numeric array, got a ragged"),
+             (lambda: JMt.bootstrap_interval_from_indices([1.0, 2.0], [[0, 1], [1]]),
+              r"^indices must be an integer array, got a ragged or non-numeric list$")]
+    for call, match in cases:
+        with pytest.raises(ValueError, match=match):
+            call()
+    assert float(JMt.action_delta([[0.0, 0.0], [3.0, 4.0]])) == 5.0
