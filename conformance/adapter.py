@@ -117,6 +117,20 @@ def forms(adapter, fname: str) -> list[tuple[str, Fn, str | None]]:
     return out
 
 
+# Arguments that are arrays in the interface ([CF-7]); a list-valued ``t`` is one too. Everything else
+# is passed as parsed from JSON ([CF-23]).
+FLOAT_ARRAYS = frozenset({"actions", "noise", "weights", "pred", "preds", "obs", "x", "cotangent", "prior", "prev",
+                          "chunks", "probs", "values"})
+INT_ARRAYS = frozenset({"indices", "chunk_index", "delays"})
+
+# The keys of a sampler trace step ([CF-11]).
+TRACE_KEYS = {
+    "naive_sample": ("state", "time", "velocity", "next_state"),
+    "rtc_sample": ("state", "time", "velocity", "blended_state", "next_state"),
+    "guided_sample": ("state", "time", "velocity", "denoised", "error", "vjp", "guidance_weight", "guided_velocity",
+                      "next_state"),
+}
+
 # Keys of a sampler trace step that are flow times or velocities ([V-1]); the
 # guidance pull-back "vjp" is taken through the denoiser x1, which both
 # conventions share, so it is not negated.

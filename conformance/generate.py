@@ -31,7 +31,7 @@ from softrtc.reference.weights import SoftWindow
 
 from .._cli_util import command_error, output_dir
 from . import FORMAT_VERSION, SPEC_VERSION, vectors_dir
-from .runner import parse_json
+from .vectors_io import parse_json
 
 
 # Tolerances (absolute, relative) per kind of quantity, loose enough for float32

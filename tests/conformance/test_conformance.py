@@ -523,9 +523,10 @@ def test_malformed_vectors_exit_2(tmp_path):
     (tmp_path / "a.json").write_text(json.dumps({"format_version": "1.0", "cases": [_valid_case(), ragged]}))
     r = _cli("run", "--impl", "reference", "--vectors", str(tmp_path))
     assert r.returncode == 2 and r.stdout == "" and "Traceback" not in r.stderr
-    assert r.stderr.strip().splitlines()[0].startswith("python -m softrtc.conformance run: error: a.json: case "
-                                                       "'M.standard_error.ragged': argument "
+    assert r.stderr.strip().splitlines()[0].startswith("python -m softrtc.conformance run: error: a.json: case 1 "
+                                                       "('M.standard_error.ragged'): argument "
                                                        "'values' is not a rectangular array"), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
 
 
 def test_vector_format_version_checked(tmp_path):

@@ -1,0 +1,156 @@
+"""Results of a conformance run and their reports ([CF-14], [CF-15], [CF-26]).
+
+:class:`RunResult` holds one :class:`CaseResult` per case; :func:`format_summary`
+prints the per-requirement summary, :func:`report_dict` the ``--report`` JSON and
+:func:`write_junit` the JUnit XML.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from .._files import write_atomic
+
+MAX_LISTED_FAILURES = 25
+TRACE_NOT_PROVIDED = "trace not provided; chunk checked only"
+UNSUPPORTED_CASE = "unsupported case"
+
+
+@dataclass
+class CaseResult:
+    """Outcome of one case: status is pass, fail or unsupported."""
+
+    id: str
+    file: str
+    function: str
+    requirements: list
+    status: str
+    worst: float = 0.0  # largest |got - want| / tolerance over the case's numbers; inf when none could be compared
+    message: str = ""
+    seconds: float = 0.0
+
+
+@dataclass
+class RunResult:
+    impl: str
+    adapter_name: str
+    time_convention: str
+    format_version: str
+    spec_versions: list
+    cases: list = field(default_factory=list)
+    seconds: float = 0.0
+    isolation: str = "in process"  # or "child process" ([CF-29])
+
+    @property
+    def counts(self) -> dict:
+        out = {"pass": 0, "fail": 0, "unsupported": 0}
+        for c in self.cases:
+            out[c.status] += 1
+        return out
+
+    @property
+    def ok(self) -> bool:
+        """[CF-16] success: no failure, and at least one supported case."""
+        n = self.counts
+        return n["fail"] == 0 and n["pass"] > 0
+
+    def by_requirement(self) -> dict:
+        reqs: dict[str, dict] = {}
+        for c in self.cases:
+            for r in c.requirements:
+                e = reqs.setdefault(r, {"pass": 0, "fail": 0, "unsupported": 0, "worst": 0.0})
+                e[c.status] += 1
+                if c.status != "unsupported":
+                    e["worst"] = max(e["worst"], c.worst)
+        for e in reqs.values():
+            e["status"] = "FAIL" if e["fail"] else ("PASS" if e["pass"] else "UNSUPPORTED")
+        return dict(sorted(reqs.items(), key=lambda kv: _req_key(kv[0])))
+
+
+def _req_key(rid: str):
+    m = re.match(r"([A-Z]+)-(\d+)$", rid)
+    return (m.group(1), int(m.group(2))) if m else (rid, 0)
+
+
+def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> str:
+    """Human-readable summary: one line per requirement id, unsupported functions, failures ([CF-14])."""
+    lines = [f"softrtc conformance: impl {res.impl} (adapter '{res.adapter_name}', {res.time_convention}), "
+             f"vectors format {res.format_version}, spec {', '.join(res.spec_versions)}; {res.isolation}"]
+    for rid, e in res.by_requirement().items():
+        n = e["pass"] + e["fail"]
+        extra = f", {e['unsupported']} unsupported" if e["unsupported"] else ""
+        worst = f"worst {e['worst']:.3g} x tol" if n else "worst -"
+        lines.append(f"  {e['status']:<11s} {rid:<6s} {worst:<20s} {n:>5d} cases{extra}"
+                     + (f" ({e['fail']} failed)" if e["fail"] else ""))
+    uns: dict[str, int] = {}
+    declined: dict[str, int] = {}
+    for c in res.cases:
+        if c.status == "unsupported" and c.message.startswith(UNSUPPORTED_CASE):
+            for r in c.requirements:
+                declined[r] = declined.get(r, 0) + 1
+        elif c.status == "unsupported":
+            uns[c.function] = uns.get(c.function, 0) + 1
+    if uns:
+        lines.append("unsupported (adapter lacks the function): "
+                     + ", ".join(f"{f} ({n} cases)" for f, n in sorted(uns.items())))
+    if declined:  # [CF-26]
+        lines.append("unsupported cases (the implementation raised NotImplementedError, or no form of the function "
+                     "takes the case), per requirement: "
+                     + ", ".join(f"{r} ({n})" for r, n in sorted(declined.items(), key=lambda kv: _req_key(kv[0]))))
+    untraced = sum(1 for c in res.cases if c.status == "pass" and c.message == TRACE_NOT_PROVIDED)
+    if untraced:
+        lines.append(f"{untraced} sampler cases passed without a trace: their chunks are checked, their per-step "
+                     "values (blended state, denoised estimate, error, pull-back) are not ([CF-11])")
+    fails = [c for c in res.cases if c.status == "fail"]
+    if fails:
+        lines.append(f"failures ({len(fails)}; first {min(len(fails), max_failures)} shown):")
+        for c in fails[:max_failures]:
+            lines.append(f"  FAIL {c.id}: {c.message}")
+    n = res.counts
+    lines.append(f"{'PASS' if res.ok else 'FAIL'}: {len(res.cases)} cases: {n['pass']} passed, {n['fail']} failed, "
+                 f"{n['unsupported']} unsupported; {res.seconds:.1f} s")
+    if n["pass"] == 0 and n["fail"] == 0:
+        lines.append("no supported case ran: the adapter provides none of the interface functions")
+    return "\n".join(lines)
+
+
+def report_dict(res: RunResult) -> dict:
+    """The --report JSON document ([CF-15])."""
+    return {"impl": res.impl, "adapter": res.adapter_name, "time_convention": res.time_convention,
+            "format_version": res.format_version, "spec_versions": res.spec_versions, "ok": res.ok,
+            "isolation": res.isolation,
+            "seconds": round(res.seconds, 3), "counts": res.counts,
+            "requirements": {k: {kk: (vv if not isinstance(vv, float) or math.isfinite(vv) else "inf")
+                                 for kk, vv in v.items()} for k, v in res.by_requirement().items()},
+            "cases": [{k: (v if not isinstance(v, float) or math.isfinite(v) else "inf")
+                       for k, v in asdict(c).items()} for c in res.cases]}
+
+
+def write_junit(res: RunResult, path) -> None:
+    """JUnit XML: one testsuite per vector file, one testcase per case ([CF-15])."""
+    root = ET.Element("testsuites", name=f"softrtc-conformance-{res.adapter_name}",
+                      tests=str(len(res.cases)), failures=str(res.counts["fail"]),
+                      skipped=str(res.counts["unsupported"]), time=f"{res.seconds:.3f}")
+    suites: dict[str, ET.Element] = {}
+    for c in res.cases:
+        s = suites.get(c.file)
+        if s is None:
+            s = suites[c.file] = ET.SubElement(root, "testsuite", name=f"conformance.{Path(c.file).stem}")
+            s.attrib.update(tests="0", failures="0", skipped="0")
+        s.set("tests", str(int(s.get("tests")) + 1))
+        tc = ET.SubElement(s, "testcase", classname=f"conformance.{Path(c.file).stem}.{c.function}", name=c.id,
+                           time=f"{c.seconds:.6f}")
+        ET.SubElement(tc, "properties")
+        props = tc.find("properties")
+        ET.SubElement(props, "property", name="requirements", value=" ".join(c.requirements))
+        if c.status == "fail":
+            s.set("failures", str(int(s.get("failures")) + 1))
+            ET.SubElement(tc, "failure", message=c.message, type="ConformanceFailure")
+        elif c.status == "unsupported":
+            s.set("skipped", str(int(s.get("skipped")) + 1))
+            ET.SubElement(tc, "skipped", message=c.message)
+    write_atomic(path, lambda f: ET.ElementTree(root).write(f, encoding="utf-8", xml_declaration=True), binary=True)
