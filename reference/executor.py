@@ -125,3 +125,22 @@ def closed_loop(generate, env_step, obs0, num_chunks: int, H: int, s: int, delay
         prev = new
     return {"actions": np.asarray(executed), "chunks": np.asarray(chunks), "priors": priors,
             "request_obs": request_obs}
+
+
+def public_first_segment(first_chunk, second_chunk, s: int, d: int) -> np.ndarray:
+    """The first segment of the public RTC evaluation loop, an alternative to [X-2] ([X-7]).
+
+    There, ``first_chunk`` is generated at the reset observation without a
+    prior, then ``second_chunk`` at the same observation with ``first_chunk``
+    as its prior (same frame, no shift) and delay ``d``; the first ``s`` steps
+    execute ``first_chunk[:d]`` then ``second_chunk[d:s]``, and request 1
+    (step ``s``) takes ``second_chunk`` as its previous chunk ([X-3]).
+
+    >>> a, b = np.zeros((4, 1)), np.ones((4, 1))
+    >>> public_first_segment(a, b, 3, 1)[:, 0].tolist()
+    [0.0, 1.0, 1.0]
+    """
+    first = check_array("first_chunk", first_chunk, ndim=2)
+    second = check_array("second_chunk", second_chunk, shape=first.shape)
+    d = check_delay(first.shape[0], s, d)
+    return np.concatenate([first[:d], second[d:s]], axis=0)

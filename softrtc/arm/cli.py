@@ -1,4 +1,4 @@
-"""``softrtc arm`` subcommands: ``train``, ``study``, ``expert`` (spec [A-14], [A-20], [A-25])."""
+"""``softrtc arm`` subcommands: ``train``, ``study``, ``expert``, ``experiment``, ``report`` (spec [A-14], [A-20], [A-25], [AX-4])."""
 
 from __future__ import annotations
 
@@ -52,6 +52,10 @@ def add_subparsers(subparsers) -> None:
     ex.add_argument("-n", type=int_in("value", 1, 100000), default=100, help="episodes (default 100)")
     ex.add_argument("--seed0", type=int_in("value", 0, SEED_MAX), default=0, help="first seed (default 0)")
     ex.set_defaults(func=_expert)
+
+    from .experiment_cli import add_experiment_parsers
+
+    add_experiment_parsers(sub)
 
 
 def _train(args) -> int:

@@ -193,3 +193,15 @@ def test_undefined_smoothness_metrics_are_left_out():
         M.difference_norm(a[:2], 2)
     # One switch after step 1: the jump is |a_2 - a_1| = |(4, 5) - (2, 3)| = sqrt(8).
     assert M.boundary_jump(a, np.array([0, 0, 1])) == pytest.approx(np.sqrt(8.0))
+
+def test_public_first_segment():
+    """X-7: the public loop's first segment is first[:d] then second[d:s], both chunks in the reset frame."""
+    first = np.arange(16.0).reshape(8, 2)
+    second = 100.0 + np.arange(16.0).reshape(8, 2)
+    seg = X.public_first_segment(first, second, 4, 3)
+    np.testing.assert_array_equal(seg, [[0, 1], [2, 3], [4, 5], [106, 107]])
+    np.testing.assert_array_equal(X.public_first_segment(first, second, 4, 0), second[:4])
+    with pytest.raises(ValueError, match="d must be"):
+        X.public_first_segment(first, second, 4, 5)
+    with pytest.raises(ValueError, match="second_chunk"):
+        X.public_first_segment(first, second[:6], 4, 1)

@@ -1,0 +1,483 @@
+"""Controlled arm experiment: methods, shared fine-tunes, paired episodes, resumable runs ([AX-1]..[AX-6]).
+
+Every method row of a task differs from the others only in what is compared:
+all fine-tunes start from the one shipped base checkpoint ([A-21]) with the
+same budget, the same seeds and therefore the same minibatch order and
+per-step draws ([T-8]); all episodes of a (task, delay) use the same
+environment seeds and sampler keys (paired episodes). Rows that train
+identically share their fine-tunes (the key of a fine-tune is its objective
+and its training weight table, so ``lam = 1`` and ``L = 0`` are Train Hard
+RTC, and a window that ``clip`` and zero padding leave the same is trained
+once), and rows that also sample identically share their episodes.
+
+Results are one CSV per cell (row, fine-tuning seed, delay) under
+``<out>/<task>/episodes/``; a cell whose file is complete is skipped, so a run
+can be stopped and resumed, or run in parts (``--rows``, ``--delays``).
+Fine-tuned checkpoints go to a work folder (not results); their digests and
+final losses are recorded in ``<out>/<task>/finetunes.json``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from softrtc.reference import endpoints as rep
+from softrtc.reference import weights as rw
+
+from .tasks import ArmTask, get_task
+
+__all__ = ["Row", "PAPER_WINDOW", "DEFAULT_WINDOW", "rows_for", "Budget", "BUDGETS", "run_experiment",
+           "EPISODE_FIELDS", "read_episodes", "measure_prior_error", "train_key", "eval_key"]
+
+H = 10
+# The spec's default window ([W-7]) and the paper's configuration ([W-10]): same rule and schedule,
+# zero padding past the overlap as the public evaluation loop does.
+DEFAULT_WINDOW = rw.SoftWindow()
+PAPER_WINDOW = rw.SoftWindow(rep.delay_scaled(2.0, 5), "linear", "rtc", "zeros")
+
+EPISODE_FIELDS = ("row", "seed", "delay", "episode", "env_seed", "success", "completed", "completion", "steps",
+                  "success_step", "D1", "D2", "D3", "boundary", "mean_abs_action")
+
+
+@dataclasses.dataclass(frozen=True)
+class Row:
+    """One method row: the checkpoint's objective and window, and the sampler it runs with ([AX-2]).
+
+    ``objective``: ``None`` (the base), ``hard``, ``soft`` or ``prior_noise``
+    (the project's variant, [AX-5]); ``window`` the training window (soft
+    objectives); ``sampler`` a method of [S-6]; ``sampler_window`` the
+    window a ``train_soft`` sampler runs with (default: ``window``).
+    """
+
+    name: str
+    label: str
+    sampler: str
+    objective: str | None = None
+    window: rw.SoftWindow | None = None
+    sampler_window: rw.SoftWindow | None = None
+    tier: str = "main"
+    origin: str = "paper"
+
+    @property
+    def infer_window(self):
+        return self.sampler_window if self.sampler_window is not None else self.window
+
+
+def _soft(name, label, window, tier="sweep", origin="paper"):
+    return Row(name, label, "train_soft", "soft", window, tier=tier, origin=origin)
+
+
+def rows_for(task: ArmTask) -> list:
+    """The method rows of the experiment: main comparison, cross-evaluations, project variant, sweeps."""
+    ds = rep.delay_scaled
+    zeros = lambda rule: rw.SoftWindow(rule, "linear", "rtc", "zeros")  # noqa: E731
+    clip = lambda rule: rw.SoftWindow(rule, "linear", "rtc", "clip")  # noqa: E731
+    rows = [
+        Row("naive", "Naive (base)", "naive"),
+        Row("inference_hard", "Inference Hard RTC", "inference_hard"),
+        Row("inference_soft", "Inference Soft RTC", "inference_soft"),
+        Row("train_hard", "Train Hard RTC", "train_hard", "hard"),
+        _soft("soft2_clip", "Train Soft RTC lam 2 (clip, spec default)", DEFAULT_WINDOW, "main", "spec"),
+        _soft("soft2_zeros", "Train Soft RTC lam 2 (zeros, paper config)", PAPER_WINDOW, "main", "paper"),
+        Row("soft2_clip_hard_sampler", "Soft lam 2 (clip) weights, hard sampler", "train_hard", "soft",
+            DEFAULT_WINDOW, tier="main", origin="cross"),
+        Row("hard_soft_sampler", "Hard weights, soft lam 2 (clip) sampler", "train_soft", "hard", None,
+            DEFAULT_WINDOW, tier="main", origin="cross"),
+        Row("soft2_clip_prior_noise", "Soft lam 2 (clip) + noisy-prior training (project variant)", "train_soft",
+            "prior_noise", DEFAULT_WINDOW, tier="main", origin="project"),
+    ]
+    for lam in (1, 3, 4):
+        for ov, f in (("clip", clip), ("zeros", zeros)):
+            rows.append(_soft(f"soft{lam}_{ov}", f"Soft lam {lam} ({ov})", f(ds(float(lam), 5))))
+    for h in (3, 5):
+        for ov, f in (("clip", clip), ("zeros", zeros)):
+            rows.append(_soft(f"fixed{h}_{ov}", f"Soft fixed h {h} ({ov})", f(rep.fixed(h))))
+    for L in range(0, 7):
+        for ov, f in (("clip", clip), ("zeros", zeros)):
+            rows.append(_soft(f"offset{L}_{ov}", f"Soft offset L {L} ({ov})", f(rep.offset(L, 8))))
+    return rows
+
+
+def _table(window, s: int, delays) -> np.ndarray:
+    return np.stack([rw.soft_weights(H, d, window, s) for d in delays])
+
+
+def train_key(row: Row, task: ArmTask) -> str | None:
+    """The fine-tune a row's checkpoint comes from: objective and training weights ([AX-3]); None for the base."""
+    if row.objective is None:
+        return None
+    delays = range(task.max_delay + 1)
+    if row.objective == "hard":
+        return "hard"
+    table = _table(row.window, task.execute_horizon, delays)
+    if np.array_equal(table, np.stack([rw.hard_weights(H, d) for d in delays])) and row.objective == "soft":
+        return "hard"
+    digest = hashlib.sha256(np.round(table, 12).tobytes()).hexdigest()[:12]
+    return f"{row.objective}-{digest}"
+
+
+def _sampler_table(row: Row, task: ArmTask) -> tuple:
+    """The sampler family and its weights at every executable delay (zero padding included, [W-6])."""
+    delays = range(task.max_delay + 1)
+    if row.sampler == "train_soft":
+        t = _table(row.infer_window, task.execute_horizon, delays)
+        overflow = row.infer_window.overflow
+        # Zero padding only matters where a window token lies past the overlap.
+        past = bool(np.any(t[:, H - task.execute_horizon:] > 0))
+        return ("train", np.round(t, 12).tobytes(), overflow if past else "clip")
+    if row.sampler == "train_hard":
+        return ("train", np.round(np.stack([rw.hard_weights(H, d) for d in delays]), 12).tobytes(), "clip")
+    return (row.sampler,)
+
+
+def eval_key(row: Row, task: ArmTask) -> str:
+    """Rows with equal checkpoints and equal samplers produce the same episodes and share them."""
+    raw = repr((train_key(row, task), _sampler_table(row, task))).encode()
+    return hashlib.sha256(raw).hexdigest()[:16]
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """How much a run computes ([AX-4]): seeds, episodes and delays per tier, fine-tune steps."""
+
+    finetune_steps: int = 800
+    main_seeds: int = 3
+    main_episodes: int = 100
+    sweep_seeds: int = 1
+    sweep_episodes: int = 50
+    prior_episodes: int = 20
+    max_steps: int = 1000
+    demo_episodes: int = 400
+    # None: every sweep row; a tuple names the sweep rows this budget runs.
+    sweep_rows: tuple | None = None
+
+    def delays(self, task: ArmTask, tier: str) -> list:
+        if tier == "main":
+            return list(range(task.max_delay + 1))
+        return [0, task.max_delay - 1, task.max_delay]
+
+
+BUDGETS = {
+    "full": Budget(),
+    "quick": Budget(finetune_steps=4, main_seeds=1, main_episodes=2, sweep_seeds=1, sweep_episodes=1,
+                    prior_episodes=1, max_steps=60, demo_episodes=4,
+                    sweep_rows=("soft1_clip", "offset0_zeros", "offset6_clip", "offset6_zeros")),
+}
+
+
+def _fmt(x):
+    if isinstance(x, (bool, np.bool_)):
+        return int(x)
+    if x is None:
+        return ""
+    if isinstance(x, float):
+        return repr(x) if np.isfinite(x) else "nan"
+    return x
+
+
+def _episode_row(name, seed, delay, i, env_seed, rec, metrics) -> dict:
+    a = rec.actions[:, 0:3]
+    return {"row": name, "seed": seed, "delay": delay, "episode": i, "env_seed": env_seed,
+            "success": bool(metrics["success"]), "completed": int(metrics["completed"]),
+            "completion": float(metrics["completion"]), "steps": int(rec.steps),
+            "success_step": rec.success_step if rec.success else -1,
+            **{k: float(metrics[k]) for k in ("D1", "D2", "D3", "boundary")},
+            "mean_abs_action": float(np.mean(np.abs(a))) if a.size else float("nan")}
+
+
+def read_episodes(path) -> list:
+    """Rows of an episode CSV as dicts with typed values."""
+    out = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            d = {"row": r["row"]}
+            for k in ("seed", "delay", "episode", "env_seed", "success", "completed", "steps", "success_step"):
+                d[k] = int(r[k])
+            for k in ("completion", "D1", "D2", "D3", "boundary", "mean_abs_action"):
+                d[k] = float(r[k])
+            out.append(d)
+    return out
+
+
+# --------------------------------------------------------------------------- policies
+
+
+def _arm_policy(model, normalizer, task: ArmTask, sampler: str, window):
+    from softrtc.jax.weights import from_reference
+
+    from .policies import ArmPolicy
+    from .policy_config import ArmPolicyConfig
+
+    cfg = ArmPolicyConfig(execute_horizon=task.execute_horizon)
+    return ArmPolicy(model, normalizer, cfg, sampler, window=None if window is None else from_reference(window),
+                     env_config=task.env_config)
+
+
+def _load(path, task: ArmTask, row: Row):
+    from .checkpoints import load_arm_checkpoint
+
+    base = load_arm_checkpoint(path)
+    return _arm_policy(base.model, base.normalizer, task, row.sampler,
+                       row.infer_window if row.sampler == "train_soft" else None)
+
+
+def _run_cell(args) -> tuple:
+    """Worker: the episodes of one cell, written to ``path`` (a temporary name, renamed when complete)."""
+    (ckpt, task_name, row, seed, delay, episodes, seed0, key_seed, max_steps, path) = args
+    import jax
+
+    from .executor import episode_metrics, run_simulated_episode
+
+    task = get_task(task_name)
+    policy = _load(ckpt, task, row)
+    t0 = time.perf_counter()
+    tmp = str(path) + ".part"
+    # Episode i depends on i only, so a shorter complete file is the prefix of a longer one: extend it.
+    done = []
+    if os.path.isfile(path):
+        with open(path, newline="") as f:
+            done = list(csv.DictReader(f))[:episodes]
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=EPISODE_FIELDS)
+        w.writeheader()
+        for r in done:
+            w.writerow(r)
+        for i in range(len(done), episodes):
+            # Paired episodes: env seed and sampler key depend on the episode index only.
+            rec = run_simulated_episode(policy, seed0 + i, delay, jax.random.fold_in(jax.random.key(key_seed), i),
+                                        max_steps=max_steps, env_config=task.env_config)
+            m = episode_metrics(rec)
+            w.writerow({k: _fmt(v) for k, v in _episode_row(row.name, seed, delay, i, seed0 + i, rec, m).items()})
+    os.replace(tmp, path)
+    return str(path), time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------- prior error
+
+
+def measure_prior_error(base_ckpt, task: ArmTask, episodes: int, max_steps: int, seed0: int = 50_000) -> dict:
+    """Error of the shifted previous chunk against the fresh plan, per delay and token ([AX-5]).
+
+    Runs the base with the naive sampler (which ignores the prior, so the new
+    chunk is the fresh plan at the request's observation) for ``episodes``
+    calibration episodes per executable delay ``d >= 1`` and returns
+    ``{"rms": {d: [o] per-token RMS in normalized action units (mean over the
+    4 dims)}, "sigma": [H][A] pooled per token and dim (0 past the overlap)}``.
+    """
+    import jax
+
+    from .executor import run_simulated_episode
+    from softrtc.jax.executor import shift_prior
+
+    row = Row("naive", "", "naive")
+    pol = _load(base_ckpt, task, row)
+    std = pol.normalizer.act_std
+    s, o = task.execute_horizon, H - task.execute_horizon
+    rms, pooled = {}, []
+    for d in range(1, task.max_delay + 1):
+        errs = []
+        for i in range(episodes):
+            rec = run_simulated_episode(pol, seed0 + i, d, jax.random.key(seed0 + i), max_steps=max_steps,
+                                        env_config=task.env_config)
+            for c in range(1, len(rec.chunks)):
+                y = np.asarray(shift_prior(rec.chunks[c - 1], s))
+                errs.append(((rec.chunks[c] - y) / std)[:o])
+        e = np.asarray(errs)
+        pooled.append(e)
+        rms[d] = np.sqrt(np.mean(e ** 2, axis=(0, 2))).tolist() if e.size else [float("nan")] * o
+    allv = np.concatenate([p for p in pooled if p.size]) if any(p.size for p in pooled) else np.zeros((1, o, 4))
+    sigma = np.zeros((H, 4))
+    sigma[:o] = np.sqrt(np.mean(allv ** 2, axis=0))
+    return {"rms": {str(k): v for k, v in rms.items()}, "sigma": sigma.tolist(), "episodes": episodes}
+
+
+# --------------------------------------------------------------------------- fine-tunes
+
+
+def _demos(work: Path, budget: Budget, seed: int = 0):
+    from .demos import generate_demos, load_demos
+
+    path = work / f"demos_{budget.demo_episodes}_{seed}.npz"
+    if not path.is_file():
+        tmp = work / "demos.part.npz"
+        generate_demos(budget.demo_episodes, seed, 0.03, str(tmp))
+        os.replace(tmp, path)
+    return load_demos(str(path))
+
+
+def _finetune(key: str, row: Row, task: ArmTask, seed: int, budget: Budget, data, base, sigma, path: Path) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from softrtc.jax.training import train
+
+    from .checkpoints import save_arm_checkpoint
+    from .features import policy_features
+    from .training import arm_train_config, chunk_dataset
+    from .prior_noise import train_prior_noise
+
+    cfg = base.config.__class__(execute_horizon=task.execute_horizon)
+    ds = chunk_dataset(data, H)
+    norm = base.normalizer
+    method = "train_hard" if key == "hard" else "train_soft"
+    tc = arm_train_config(method, cfg, budget.finetune_steps, learning_rate=1e-3 / 3)
+    if method == "train_soft":
+        tc = dataclasses.replace(tc, window=row.window)
+    obs = jnp.asarray(norm.obs(policy_features(ds["obs"])), jnp.float32)
+    act = jnp.asarray(norm.act(ds["chunks"]), jnp.float32)
+    t0 = time.perf_counter()
+    k = jax.random.key(seed)
+    if row.objective == "prior_noise":
+        model, losses = train_prior_noise(base.model, obs, act, tc, k, budget.finetune_steps, np.asarray(sigma))
+    else:
+        model, losses = train(base.model, {"obs": obs, "actions": act}, tc, k, budget.finetune_steps, progress=True)
+    save_arm_checkpoint(path, model, norm, cfg, method, {"experiment_key": key, "seed": seed}, tc)
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+    return {"key": key, "seed": seed, "steps": budget.finetune_steps, "final_loss": float(np.mean(losses[-20:])),
+            "seconds": round(time.perf_counter() - t0, 1), "sha256_16": digest,
+            "window": None if row.window is None or key == "hard" else row.window.to_dict()}
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="results/arm", work="arm_experiment_work",
+                   rows=None, delays=None, seeds=None, tiers=("main", "sweep"), workers: int = 2,
+                   episodes: int | None = None, seed0: int = 10_000, key_seed: int = 0, log=print) -> dict:
+    """Run (or resume) the experiment of ``task_name`` under a budget; returns a summary of what ran.
+
+    ``rows`` restricts to named rows, ``delays`` to some delays, ``seeds`` to
+    some fine-tuning seeds (1-based indices), ``tiers`` to ``main`` and/or
+    ``sweep``; ``episodes`` caps the episodes per cell below the budget's (a
+    later run with more extends the cells). Complete cells are never recomputed.
+    """
+    from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing as mp
+
+    task = get_task(task_name)
+    if budget_name not in BUDGETS:
+        raise ValueError(f"budget must be one of {tuple(BUDGETS)}, got {budget_name!r}")
+    budget = BUDGETS[budget_name]
+    if episodes is not None and (isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1):
+        raise ValueError(f"episodes must be an integer >= 1 or None, got {episodes!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 64:
+        raise ValueError(f"workers must be an integer in [1, 64], got {workers!r}")
+    all_rows = rows_for(task)
+    names = [r.name for r in all_rows]
+    if rows is not None:
+        bad = [r for r in rows if r not in names]
+        if bad:
+            raise ValueError(f"rows must be among {names}, got {bad}")
+    if delays is not None and any(not 0 <= d <= task.max_delay for d in delays):
+        raise ValueError(f"delays must be integers in [0, {task.max_delay}], got {delays}")
+    bad_tiers = [t for t in tiers if t not in ("main", "sweep")]
+    if bad_tiers:
+        raise ValueError(f"tiers must be among ('main', 'sweep'), got {bad_tiers}")
+    selected = [r for r in all_rows if (rows is None or r.name in rows) and r.tier in tiers
+                and (r.tier == "main" or budget.sweep_rows is None or r.name in budget.sweep_rows)]
+    out_dir = Path(out) / task.name
+    ep_dir = out_dir / "episodes"
+    ep_dir.mkdir(parents=True, exist_ok=True)
+    work_dir = Path(work) / task.name / budget_name
+    work_dir.mkdir(parents=True, exist_ok=True)
+    from .checkpoints import default_checkpoint_dir, load_arm_checkpoint
+
+    base_path = default_checkpoint_dir() / "base.npz"
+    manifest_path = out_dir / "manifest.json"
+    manifest = {"task": task.name, "execute_horizon": task.execute_horizon, "H": H, "budget": budget_name,
+                "budget_values": dataclasses.asdict(budget), "seed0": seed0, "key_seed": key_seed,
+                "base_sha256_16": hashlib.sha256(base_path.read_bytes()).hexdigest()[:16],
+                "rows": {r.name: {"label": r.label, "sampler": r.sampler, "objective": r.objective, "tier": r.tier,
+                                  "origin": r.origin, "train_key": train_key(r, task), "eval_key": eval_key(r, task),
+                                  "window": None if r.window is None else r.window.to_dict(),
+                                  "sampler_window": None if r.infer_window is None else r.infer_window.to_dict()}
+                         for r in all_rows},
+                "order": [r.name for r in all_rows]}
+    if manifest_path.is_file():
+        old = json.loads(manifest_path.read_text())
+        if old.get("budget_values") != manifest["budget_values"] or old.get("base_sha256_16") != \
+                manifest["base_sha256_16"] or old.get("seed0") != seed0 or old.get("key_seed") != key_seed:
+            raise ValueError(f"{manifest_path} was written with another budget, base or seeds; use another --out")
+    manifest_path.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+
+    # Prior error of the base (the project's variant trains with it, [AX-5]).
+    prior_path = out_dir / "prior_error.json"
+    if not prior_path.is_file():
+        log(f"[{task.name}] measuring the prior error on {budget.prior_episodes} episodes per delay")
+        pe = measure_prior_error(base_path, task, budget.prior_episodes, budget.max_steps)
+        prior_path.write_text(json.dumps(pe, indent=1) + "\n")
+    sigma = json.loads(prior_path.read_text())["sigma"]
+
+    # Fine-tunes, one per (train key, seed), shared by every row with that key.
+    ft_path = out_dir / "finetunes.json"
+    finetunes = json.loads(ft_path.read_text()) if ft_path.is_file() else {}
+    base = None
+    data = None
+    ckpt_of = {}
+    jobs = []
+    for r in selected:
+        key = train_key(r, task)
+        n_seeds = budget.main_seeds if r.tier == "main" else budget.sweep_seeds
+        seed_list = list(range(1, n_seeds + 1)) if key is not None else [0]
+        if seeds is not None:
+            seed_list = [s for s in seed_list if s in seeds or key is None]
+        for sd in seed_list:
+            if key is None:
+                ckpt = base_path
+            else:
+                ckpt = work_dir / f"{key}_seed{sd}.npz"
+                tag = f"{key}_seed{sd}"
+                if not ckpt.is_file():
+                    if base is None:
+                        base = load_arm_checkpoint(base_path)
+                        data = _demos(Path(work), budget)
+                    log(f"[{task.name}] fine-tune {tag} ({r.name}, {budget.finetune_steps} steps)")
+                    finetunes[tag] = _finetune(key, r, task, sd, budget, data, base, sigma, ckpt)
+                    ft_path.write_text(json.dumps(finetunes, indent=1, sort_keys=True) + "\n")
+            ckpt_of[(r.name, sd)] = ckpt
+            n_eps = budget.main_episodes if r.tier == "main" else budget.sweep_episodes
+            n_eps = n_eps if episodes is None else min(n_eps, episodes)
+            for d in budget.delays(task, r.tier):
+                if delays is not None and d not in delays:
+                    continue
+                ek = eval_key(r, task)
+                path = ep_dir / f"{ek}_s{sd}_d{d}.csv"
+                jobs.append((r, sd, d, n_eps, path, ckpt))
+    # Rows that share an eval key share their episodes: run each file once.
+    todo, seen = [], set()
+    for (r, sd, d, n, path, ckpt) in jobs:
+        if path in seen or (path.is_file() and len(read_episodes(path)) >= n):
+            continue
+        seen.add(path)
+        todo.append((str(ckpt), task.name, r, sd, d, n, seed0, key_seed, budget.max_steps, str(path)))
+    log(f"[{task.name}] {len(jobs)} cells, {len(todo)} to run with {workers} worker(s)")
+    t0 = time.perf_counter()
+    done = 0
+    if todo:
+        if workers == 1:
+            results = map(_run_cell, todo)
+        else:
+            pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+            results = pool.map(_run_cell, todo)
+        for p, secs in results:
+            done += 1
+            log(f"[{task.name}] {done}/{len(todo)} {Path(p).name} ({secs:.0f} s, {time.perf_counter() - t0:.0f} s "
+                "elapsed)")
+        if workers != 1:
+            pool.shutdown()
+    # The cell index maps every (row, seed, delay) to its episode file (shared files included).
+    index_path = out_dir / "cells.json"
+    index = json.loads(index_path.read_text()) if index_path.is_file() else {}
+    for (r, sd, d, n, path, ckpt) in jobs:
+        if path.is_file():
+            index[f"{r.name}|{sd}|{d}"] = path.name
+    index_path.write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
+    return {"cells": len(jobs), "ran": len(todo), "seconds": time.perf_counter() - t0}

@@ -1,0 +1,68 @@
+"""``softrtc arm experiment`` and ``softrtc arm report`` ([AX-4], [AX-6])."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from .._cli_util import comma_list, int_in, output_dir
+
+__all__ = ["add_experiment_parsers"]
+
+
+def _tier(text: str) -> str:
+    if text not in ("main", "sweep"):
+        raise argparse.ArgumentTypeError(f"tier must be main or sweep, got {text!r}")
+    return text
+
+
+def add_experiment_parsers(sub) -> None:
+    """Register ``arm experiment`` and ``arm report`` on the ``softrtc arm`` subparsers."""
+    from .tasks import TASKS
+
+    ex = sub.add_parser("experiment", help="controlled arm experiment: paired episodes, shared fine-tunes, "
+                                           "resumable ([AX-1]..[AX-5])")
+    ex.add_argument("--task", choices=tuple(TASKS), default="overlap4", help="task setting (default overlap4)")
+    ex.add_argument("--quick", action="store_true", help="tiny budget: the whole pipeline in a few minutes")
+    ex.add_argument("--out", type=output_dir(), default="results/arm", help="results folder (default results/arm)")
+    ex.add_argument("--work", type=output_dir(), default="arm_experiment_work",
+                    help="folder for demos and fine-tuned checkpoints (default ./arm_experiment_work)")
+    ex.add_argument("--rows", type=comma_list("row"), default=None, help="only these rows (comma-separated)")
+    ex.add_argument("--tiers", type=comma_list("tier", _tier), default=["main", "sweep"],
+                    help="main and/or sweep (default both)")
+    ex.add_argument("--delays", type=comma_list("delay", int), default=None, help="only these delays")
+    ex.add_argument("--seeds", type=comma_list("seed", int), default=None,
+                    help="only these fine-tuning seeds (1-based)")
+    ex.add_argument("--episodes", type=int_in("value", 1, 100000), default=None,
+                    help="at most this many episodes per cell (a later run with more extends the cells)")
+    ex.add_argument("--workers", type=int_in("value", 1, 64), default=2, help="episode worker processes (default 2)")
+    ex.add_argument("--report", action="store_true", help="write REPORT.md and plots afterwards")
+    ex.set_defaults(func=_experiment)
+
+    rp = sub.add_parser("report", help="REPORT.md, summary.json and plots from the experiment's result files ([AX-6])")
+    rp.add_argument("--results", default="results/arm", help="results folder (default results/arm)")
+    rp.add_argument("--readme", default=None, help="also regenerate the arm table of this README")
+    rp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    rp.set_defaults(func=_report)
+
+
+def _experiment(args) -> int:
+    from .experiment import run_experiment
+
+    t0 = time.perf_counter()
+    r = run_experiment(args.task, "quick" if args.quick else "full", out=args.out, work=args.work, rows=args.rows,
+                       delays=args.delays, seeds=args.seeds, tiers=tuple(args.tiers), workers=args.workers,
+                       episodes=args.episodes)
+    print(f"{r['cells']} cells, {r['ran']} run now, {time.perf_counter() - t0:.0f} s in all")
+    if args.report:
+        from .report import write_report
+
+        print(write_report(args.out))
+    return 0
+
+
+def _report(args) -> int:
+    from .report import write_report
+
+    print(write_report(args.results, readme=args.readme, plots=not args.no_plots))
+    return 0

@@ -1,0 +1,137 @@
+"""Statistics of the arm experiment: intervals over seeds and episodes, paired tests ([AX-7]).
+
+Values of one method and delay form a matrix ``V[seed, episode]`` (NaN where
+a metric is undefined for an episode, [A-24]). Every method of a task runs
+the same environment seeds and sampler keys, so two methods' matrices are
+paired entry by entry: fine-tuning seed ``k`` of one method is paired with
+fine-tuning seed ``k`` of the other (same seed, same data order), and a
+method without fine-tuning (the base) has one row, paired with every row.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["cluster_bootstrap", "paired_difference", "mcnemar_exact", "as_matrix"]
+
+
+def as_matrix(name: str, values) -> np.ndarray:
+    """``values`` as a float matrix ``[seeds >= 1, episodes >= 1]`` (NaN allowed, infinities not)."""
+    try:
+        v = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real matrix [seeds, episodes], got {type(values).__name__}") from None
+    if np.asarray(values).dtype.kind == "b":
+        v = v.astype(np.float64)
+    if v.ndim != 2 or v.shape[0] < 1 or v.shape[1] < 1:
+        raise ValueError(f"{name} must be a real matrix [seeds >= 1, episodes >= 1], got shape {list(v.shape)}")
+    if np.any(np.isinf(v)):
+        raise ValueError(f"{name} must not hold infinities")
+    return v
+
+
+def _check_resamples(num_resamples, seed):
+    if isinstance(num_resamples, bool) or not isinstance(num_resamples, (int, np.integer)) \
+            or not 1 <= num_resamples <= 10**6:
+        raise ValueError(f"num_resamples must be an integer in [1, 1000000], got {num_resamples!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
+        raise ValueError(f"seed must be an integer in [0, 2**63 - 1], got {seed!r}")
+
+
+def _resampled_means(v: np.ndarray, num_resamples: int, seed: int) -> np.ndarray:
+    """Means of ``v`` over resampled seeds (rows) and resampled episodes (columns), both with replacement.
+
+    Episodes are resampled as one set of columns for every row: they are the
+    same environment seeds in every row, so they are resampled as units.
+    """
+    rng = np.random.default_rng(seed)
+    S, E = v.shape
+    rows = rng.integers(0, S, size=(num_resamples, S))
+    cols = rng.integers(0, E, size=(num_resamples, E))
+    out = np.empty(num_resamples)
+    # In blocks, so memory stays bounded for large matrices.
+    step = max(1, 2_000_000 // max(S * E, 1))
+    for b0 in range(0, num_resamples, step):
+        sub = v[rows[b0:b0 + step, :, None], cols[b0:b0 + step, None, :]]
+        ok = np.isfinite(sub)
+        cnt = ok.sum(axis=(1, 2))
+        tot = np.where(ok, sub, 0.0).sum(axis=(1, 2))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[b0:b0 + step] = np.where(cnt > 0, tot / np.maximum(cnt, 1), np.nan)
+    return out
+
+
+def cluster_bootstrap(values, num_resamples: int = 2000, seed: int = 0) -> dict:
+    """Mean of ``V[seed, episode]`` and its bootstrap 95% interval over seeds and episodes.
+
+    Returns ``{"mean", "lo", "hi", "n"}`` with ``n`` the number of defined
+    entries; the interval is the 2.5 / 97.5 percentiles of the resampled means
+    (NaN when no entry is defined, or a single one).
+    """
+    v = as_matrix("values", values)
+    _check_resamples(num_resamples, seed)
+    ok = np.isfinite(v)
+    n = int(ok.sum())
+    if n == 0:
+        return {"mean": float("nan"), "lo": float("nan"), "hi": float("nan"), "n": 0}
+    mean = float(v[ok].mean())
+    if n == 1:
+        return {"mean": mean, "lo": float("nan"), "hi": float("nan"), "n": 1}
+    means = _resampled_means(v, num_resamples, seed)
+    means = means[np.isfinite(means)]
+    return {"mean": mean, "lo": float(np.percentile(means, 2.5)), "hi": float(np.percentile(means, 97.5)), "n": n}
+
+
+def paired_difference(a, b, num_resamples: int = 2000, seed: int = 0) -> dict:
+    """Paired bootstrap of ``mean(a - b)`` over seeds and episodes.
+
+    ``a`` and ``b`` are ``[seeds, episodes]`` with the same number of episodes;
+    a one-row matrix is paired with every row of the other. Pairs where either
+    value is undefined are left out. Returns ``{"diff", "lo", "hi", "p",
+    "n"}``: ``p`` is the two-sided bootstrap p-value (twice the smaller share
+    of resampled differences on either side of 0, at most 1).
+    """
+    a, b = as_matrix("a", a), as_matrix("b", b)
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"a and b must have the same number of episodes, got {a.shape[1]} and {b.shape[1]}")
+    if a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0]):
+        raise ValueError(f"a and b must have the same number of seeds or one of them one, got {a.shape[0]} and "
+                         f"{b.shape[0]}")
+    _check_resamples(num_resamples, seed)
+    S = max(a.shape[0], b.shape[0])
+    d = np.broadcast_to(a, (S, a.shape[1])) - np.broadcast_to(b, (S, b.shape[1]))
+    r = cluster_bootstrap(d, num_resamples, seed)
+    if r["n"] < 2:
+        return {"diff": r["mean"], "lo": r["lo"], "hi": r["hi"], "p": float("nan"), "n": r["n"]}
+    means = _resampled_means(d, num_resamples, seed)
+    means = means[np.isfinite(means)]
+    p = min(1.0, 2.0 * min(np.mean(means <= 0.0), np.mean(means >= 0.0)))
+    return {"diff": r["mean"], "lo": r["lo"], "hi": r["hi"], "p": float(p), "n": r["n"]}
+
+
+def mcnemar_exact(a, b) -> dict:
+    """Exact McNemar test of paired successes ``a`` vs ``b`` (same shapes, or one a single row).
+
+    ``b10`` counts pairs where only ``a`` succeeded, ``b01`` where only ``b``
+    did; ``p = min(1, 2 P[X <= min(b10, b01)])`` for ``X ~ Binomial(b10 + b01,
+    1/2)`` (1 when there is no discordant pair). Returns ``{"b10", "b01", "p"}``.
+    """
+    a, b = as_matrix("a", a), as_matrix("b", b)
+    for name, m in (("a", a), ("b", b)):
+        if not np.all(np.isin(m, (0.0, 1.0))):
+            raise ValueError(f"{name} must hold successes as 0/1 (or booleans) only")
+    if a.shape[1] != b.shape[1] or (a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0])):
+        raise ValueError(f"a and b must be paired: shapes {list(a.shape)} and {list(b.shape)}")
+    S = max(a.shape[0], b.shape[0])
+    a = np.broadcast_to(a, (S, a.shape[1]))
+    b = np.broadcast_to(b, (S, b.shape[1]))
+    b10 = int(np.sum((a == 1) & (b == 0)))
+    b01 = int(np.sum((a == 0) & (b == 1)))
+    n = b10 + b01
+    if n == 0:
+        return {"b10": 0, "b01": 0, "p": 1.0}
+    k = min(b10, b01)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n
+    return {"b10": b10, "b01": b01, "p": float(min(1.0, 2.0 * tail))}

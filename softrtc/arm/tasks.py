@@ -1,0 +1,60 @@
+"""Arm task settings of the experiment: ``easy`` and ``overlap4`` ([AX-1]).
+
+A task is an environment config plus the execute horizon ``s`` the policies
+run with (the chunk horizon stays ``H = 10``, so the shipped base policy,
+trained without delays, serves every task). ``easy`` is the study's setting
+([A-17]: ``s = 5``, overlap ``H - s = 5``, delays ``0 .. 5``). ``overlap4``
+runs ``s = 6``: the overlap is ``H - s = 4`` and the executable delays are
+``0 .. 4``, the geometry of the paper's main setting (``H = 8, s = 4``:
+overlap 4, delays ``0 .. 4``), so the paper's window (``lam = 2``,
+``h_max = 5``) runs past the overlap at ``d = 3, 4`` exactly as there ([W-6]),
+and every chunk executes six ticks open loop, more of them from an older plan
+as the delay grows. Neither setting is delay-sensitive for the base policy
+(measured in [AX-1]: the naive base solves about as often at the largest
+delay as at ``d = 0``); a delay-sensitive arm task is still to be found.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from .env import ArmConfig
+
+__all__ = ["ArmTask", "TASKS", "get_task"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ArmTask:
+    """A named setting: environment config and execute horizon ``s`` (``H`` is the policy's, 10)."""
+
+    name: str
+    execute_horizon: int
+    env_config: ArmConfig = dataclasses.field(default_factory=ArmConfig)
+    description: str = ""
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"name must be a non-empty string, got {self.name!r}")
+        if isinstance(self.execute_horizon, bool) or not isinstance(self.execute_horizon, int) \
+                or not 1 <= self.execute_horizon <= 9:
+            raise ValueError(f"execute_horizon must be an integer in [1, 9] (H = 10), got {self.execute_horizon!r}")
+        if not isinstance(self.env_config, ArmConfig):
+            raise ValueError(f"env_config must be an ArmConfig, got {type(self.env_config).__name__}")
+
+    @property
+    def max_delay(self) -> int:
+        """Largest executable delay ``min(s, H - s)`` with ``H = 10`` ([X-1])."""
+        return min(self.execute_horizon, 10 - self.execute_horizon)
+
+
+TASKS = {
+    "easy": ArmTask("easy", 5, ArmConfig(), "the study's setting: s = 5, delays 0..5"),
+    "overlap4": ArmTask("overlap4", 6, ArmConfig(), "s = 6, overlap 4, delays 0..4 (the paper's overlap geometry)"),
+}
+
+
+def get_task(name: str) -> ArmTask:
+    """The task named ``name`` (one of :data:`TASKS`)."""
+    if not isinstance(name, str) or name not in TASKS:
+        raise ValueError(f"task must be one of {tuple(TASKS)}, got {name!r}")
+    return TASKS[name]

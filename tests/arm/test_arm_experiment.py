@@ -1,0 +1,148 @@
+"""The arm experiment: paired statistics, shared fine-tunes, the noisy-prior variant, the pipeline, the report."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softrtc.arm import paired_stats as ps
+from softrtc.arm.experiment import DEFAULT_WINDOW, PAPER_WINDOW, eval_key, rows_for, train_key
+from softrtc.arm.tasks import TASKS, get_task
+
+ROOT = Path(__file__).resolve().parents[2]
+RESULTS = ROOT / "results" / "arm"
+
+
+def test_mcnemar_exact_hand_values():
+    """AX-7: exact McNemar from the discordant pairs: 0 vs 5 gives 2 / 2^5; ties give 1; pairing broadcasts a base row."""
+    a = np.array([[1, 1, 1, 1, 1, 0, 1]])
+    b = np.array([[0, 0, 0, 0, 0, 0, 1]])
+    r = ps.mcnemar_exact(a, b)
+    assert (r["b10"], r["b01"]) == (5, 0)
+    assert r["p"] == pytest.approx(2 / 32)
+    assert ps.mcnemar_exact(b, b)["p"] == 1.0
+    # 1 vs 3 discordant: p = 2 * (C(4,0) + C(4,1)) / 16 = 10/16.
+    r = ps.mcnemar_exact(np.array([[1, 0, 0, 0, 1]]), np.array([[0, 1, 1, 1, 1]]))
+    assert (r["b10"], r["b01"], r["p"]) == (1, 3, pytest.approx(10 / 16))
+    # A one-row base is paired with every seed row of the other method.
+    r = ps.mcnemar_exact(np.array([[1, 0]]), np.array([[0, 0], [0, 1]]))
+    assert (r["b10"], r["b01"]) == (2, 1)
+    with pytest.raises(ValueError, match="0/1"):
+        ps.mcnemar_exact(np.array([[0.5]]), np.array([[1]]))
+
+
+def test_cluster_bootstrap_and_paired_difference():
+    """AX-7: a constant matrix has a zero-width interval; a - a is 0 with p = 1; a shift by c is c with p near 0."""
+    r = ps.cluster_bootstrap(np.full((3, 10), 0.25), 200, 0)
+    assert (r["mean"], r["lo"], r["hi"], r["n"]) == (0.25, 0.25, 0.25, 30)
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(3, 40))
+    same = ps.paired_difference(a, a, 300, 0)
+    assert (same["diff"], same["lo"], same["hi"], same["p"]) == (0.0, 0.0, 0.0, 1.0)
+    shifted = ps.paired_difference(a + 0.5, a, 300, 0)
+    assert shifted["diff"] == pytest.approx(0.5) and shifted["lo"] == pytest.approx(0.5)
+    assert shifted["p"] == 0.0
+    # NaN entries (undefined metrics) are left out of the mean, not counted as 0.
+    v = np.array([[1.0, np.nan, 3.0]])
+    assert ps.cluster_bootstrap(v, 100, 0)["mean"] == 2.0
+    # The interval covers the mean and widens with the spread between seeds.
+    wide = ps.cluster_bootstrap(np.array([[0.0] * 20, [1.0] * 20, [0.5] * 20]), 500, 0)
+    assert wide["lo"] < 0.5 < wide["hi"]
+    with pytest.raises(ValueError, match="num_resamples"):
+        ps.cluster_bootstrap(v, 0, 0)
+    with pytest.raises(ValueError, match="same number of episodes"):
+        ps.paired_difference(np.zeros((1, 3)), np.zeros((1, 4)))
+
+
+def test_rows_share_fine_tunes_and_episodes_where_identical():
+    """AX-2, AX-3, W-8, W-10: lam 1 and L 0 are Train Hard RTC; clip and zeros share where the window stays
+    inside the overlap; the paper configuration is the default rule and schedule with zero padding."""
+    for name, task in TASKS.items():
+        rows = {r.name: r for r in rows_for(task)}
+        for r in ("soft1_clip", "soft1_zeros", "offset0_clip", "offset0_zeros"):
+            assert train_key(rows[r], task) == "hard"
+            assert eval_key(rows[r], task) == eval_key(rows["train_hard"], task)
+        # The cross-evaluation runs another sampler on the same fine-tune.
+        assert train_key(rows["soft2_clip_hard_sampler"], task) == train_key(rows["soft2_clip"], task)
+        assert eval_key(rows["soft2_clip_hard_sampler"], task) != eval_key(rows["soft2_clip"], task)
+    easy, o4 = get_task("easy"), get_task("overlap4")
+    rows = {r.name: r for r in rows_for(easy)}
+    # easy: overlap 5 = h_max, so the paper's window never runs past it and zero padding changes nothing.
+    assert eval_key(rows["soft2_zeros"], easy) == eval_key(rows["soft2_clip"], easy)
+    rows = {r.name: r for r in rows_for(o4)}
+    # overlap4: at d = 3, 4 the window reaches token 4, past the overlap of 4 (the paper's geometry).
+    assert train_key(rows["soft2_zeros"], o4) != train_key(rows["soft2_clip"], o4)
+    assert PAPER_WINDOW.overflow == "zeros" and DEFAULT_WINDOW.overflow == "clip"
+    assert PAPER_WINDOW.rule == DEFAULT_WINDOW.rule and PAPER_WINDOW.schedule == DEFAULT_WINDOW.schedule
+
+
+def test_tasks():
+    """AX-1: easy is the study's s = 5; overlap4 runs s = 6 with delays 0..4 like the paper's H = 8, s = 4."""
+    assert (get_task("easy").execute_horizon, get_task("easy").max_delay) == (5, 5)
+    assert (get_task("overlap4").execute_horizon, get_task("overlap4").max_delay) == (6, 4)
+    with pytest.raises(ValueError, match="task must be one of"):
+        get_task("hard")
+
+
+def test_prior_noise_with_zero_sigma_is_the_soft_fine_tune():
+    """AX-5: with sigma = 0 the noisy-prior objective is chapter T's soft step (same draws, same batches)."""
+    import dataclasses
+
+    import jax
+
+    from softrtc.arm.policy_config import ArmPolicyConfig, new_model
+    from softrtc.arm.prior_noise import train_prior_noise
+    from softrtc.arm.training import arm_train_config
+    from softrtc.jax.training import train
+
+    cfg = ArmPolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1,
+                          execute_horizon=6)
+    model = new_model(cfg, 0)
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(20, model.obs_dim)).astype(np.float32)
+    act = rng.normal(size=(20, 10, 4)).astype(np.float32)
+    tc = dataclasses.replace(arm_train_config("train_soft", cfg, 3, batch_size=8), window=PAPER_WINDOW)
+    ref, ref_loss = train(model, {"obs": obs, "actions": act}, tc, jax.random.key(3), 3, progress=False)
+    got, loss = train_prior_noise(model, obs, act, tc, jax.random.key(3), 3, np.zeros((10, 4)))
+    np.testing.assert_allclose(loss, ref_loss, rtol=1e-5, atol=1e-6)
+    for x, y in zip(jax.tree.leaves(jax.tree.map(np.asarray, ref)), jax.tree.leaves(jax.tree.map(np.asarray, got))):
+        np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-6)
+    # A non-zero sigma changes the run (it perturbs the window tokens' input).
+    _, noisy = train_prior_noise(model, obs, act, tc, jax.random.key(3), 3, np.full((10, 4), 0.5))
+    assert not np.allclose(noisy, ref_loss)
+    with pytest.raises(ValueError, match="sigma"):
+        train_prior_noise(model, obs, act, tc, jax.random.key(3), 3, np.zeros((9, 4)))
+
+
+@pytest.mark.slow
+def test_quick_experiment_pipeline(tmp_path):
+    """AX-4, AX-6: `softrtc arm experiment --quick` runs every stage, writes cells and a report, and resumes."""
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    cmd = [sys.executable, "-m", "softrtc.cli", "arm", "experiment", "--quick", "--out", str(tmp_path / "res"),
+           "--work", str(tmp_path / "work"), "--report"]
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    task = tmp_path / "res" / "overlap4"
+    cells = json.loads((task / "cells.json").read_text())
+    manifest = json.loads((task / "manifest.json").read_text())
+    # Shared rows point at the same episode file; every file has the quick budget's episodes.
+    assert cells["soft1_clip|1|0"] == cells["train_hard|1|0"]
+    for name in set(cells.values()):
+        lines = (task / "episodes" / name).read_text().strip().splitlines()
+        assert len(lines) == 1 + manifest["budget_values"]["main_episodes"] or \
+            len(lines) == 1 + manifest["budget_values"]["sweep_episodes"]
+    report = (tmp_path / "res" / "REPORT.md").read_text()
+    assert report.count("Verdict: **") >= 7
+    for png in ("frontier.png", "sweeps.png", "success_by_delay.png", "window_weights.png"):
+        assert (task / png).stat().st_size > 1000
+    # Resuming does not recompute a complete cell.
+    again = subprocess.run(cmd[:-1], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert again.returncode == 0 and ", 0 run now" in again.stdout
+
