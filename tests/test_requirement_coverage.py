@@ -1,4 +1,19 @@
-"""Every requirement id defined in spec/ is named by at least one test (spec/00-overview.md)."""
+"""Every requirement id defined in spec/ is named by at least one test that checks it (spec/00-overview.md).
+
+A test *counts* for the ids its docstring names when both hold ([N-14]):
+
+* it checks something: an ``assert``, a ``pytest.raises``, an ``assert_*``
+  call (``np.testing.assert_allclose``, ...), or a call of a helper of its own
+  module that does one of these;
+* its expectation is not the reference's own output: it does not run the
+  reference through the conformance runner (``run("reference", ...)``, a
+  ``Reference...`` adapter, ``--impl reference``), since the shipped vectors
+  are what the reference generated, so such a run compares the reference
+  with itself.
+
+Tests that check the JAX, PyTorch or another implementation against the
+vectors count: the code under test did not produce them.
+"""
 
 import ast
 import re
@@ -17,7 +32,8 @@ def spec_ids() -> dict:
 
 
 def test_spec_defines_each_id_once():
-    """Requirement ids are unique across the spec (ids are stable, so a later rule may sit in an earlier section)."""
+    """N-14: requirement ids are unique across the spec (ids are stable, so a later rule may sit in an earlier
+    section)."""
     seen = {}
     for f in sorted((ROOT / "spec").glob("*.md")):
         for m in DEF.finditer(f.read_text()):
@@ -26,33 +42,194 @@ def test_spec_defines_each_id_once():
     assert len(seen) > 50
 
 
-def _test_docstrings() -> dict:
-    """Maps each collected test function (``tests/test_*.py``, ``test*`` names) to its docstring."""
+# ----------------------------------------------------------------------------- what a test checks
+
+
+def _call_name(call: ast.Call) -> str:
+    f = call.func
+    return f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+
+
+def _own_checks(fn: ast.AST) -> bool:
+    """An assert, a pytest.raises or an assert_* call directly in ``fn``."""
+    for node in ast.walk(fn):
+        if isinstance(node, ast.Assert):
+            return True
+        if isinstance(node, ast.Call) and (_call_name(node) == "raises" or _call_name(node).startswith("assert")):
+            return True
+    return False
+
+
+def _names_reference(node: ast.AST) -> bool:
+    """The reference implementation as an adapter: "reference", REF, ReferenceAdapter(), reference.ADAPTER..."""
+    if isinstance(node, ast.Constant):
+        return node.value == "reference"
+    if isinstance(node, ast.Call):
+        return _names_reference(node.func)
+    name = node.attr if isinstance(node, ast.Attribute) else node.id if isinstance(node, ast.Name) else ""
+    return name in ("REF", "reference", "ref_adapter") or name.startswith("Reference")
+
+
+def _runs_reference_on_vectors(fn: ast.AST) -> bool:
+    """``fn`` runs the reference through the conformance runner, in Python or on the command line."""
+    for node in ast.walk(fn):
+        if isinstance(node, ast.Call) and _call_name(node) == "run" and node.args \
+                and _names_reference(node.args[0]):
+            return True
+        if isinstance(node, (ast.List, ast.Tuple)):
+            words = [e.value for e in node.elts if isinstance(e, ast.Constant)]
+            if any(a == "--impl" and b == "reference" for a, b in zip(words, words[1:])):
+                return True
+    return False
+
+
+def classify(source: str) -> dict:
+    """``{test name: (docstring, checks, self_referential)}`` for the test functions of a module's source."""
+    tree = ast.parse(source)
+    funcs = {n.name: n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+    classes = [n for n in tree.body if isinstance(n, ast.ClassDef)]
+
+    def called(fn):
+        return {_call_name(c) for c in ast.walk(fn) if isinstance(c, ast.Call)} & set(funcs)
+
+    # Helpers of the module that check, and those that run the reference on the vectors (to a fixed point).
+    checks = {n for n, f in funcs.items() if _own_checks(f)}
+    selfref = {n for n, f in funcs.items() if _runs_reference_on_vectors(f)}
+    changed = True
+    while changed:
+        changed = False
+        for n, f in funcs.items():
+            for target in (checks, selfref):
+                if n not in target and called(f) & target:
+                    target.add(n)
+                    changed = True
     out = {}
-    for p in sorted((ROOT / "tests").glob("test_*.py")):
-        if p.name == Path(__file__).name:
-            continue
-        for node in ast.walk(ast.parse(p.read_text())):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name.startswith("test"):
-                out[f"{p.name}::{node.name}"] = ast.get_docstring(node) or ""
+    tests = [(n, f) for n, f in funcs.items() if n.startswith("test")]
+    for c in classes:
+        if c.name.startswith("Test"):
+            tests += [(f"{c.name}.{f.name}", f) for f in c.body
+                      if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef)) and f.name.startswith("test")]
+    for name, f in tests:
+        own = name.split(".")[-1]
+        out[name] = (ast.get_docstring(f) or "",
+                     own in checks or _own_checks(f) or bool(called(f) & checks),
+                     own in selfref or _runs_reference_on_vectors(f) or bool(called(f) & selfref))
     return out
 
 
-def test_every_requirement_id_is_named_by_a_test():
-    """Fails if any requirement id in spec/ is named by no test function's docstring.
+def _all_tests() -> dict:
+    """Every test function of ``tests/**/test_*.py`` but this file, by ``path::name``."""
+    out = {}
+    for p in sorted((ROOT / "tests").rglob("test_*.py")):
+        if p.name == Path(__file__).name:
+            continue
+        rel = p.relative_to(ROOT).as_posix()
+        for name, info in classify(p.read_text()).items():
+            out[f"{rel}::{name}"] = info
+    return out
+
+
+def _named(i: str, doc: str) -> bool:
+    return re.search(rf"(?<![A-Z-]){re.escape(i)}(?!\d)", doc) is not None
+
+
+def test_the_coverage_rule_on_hand_made_tests():
+    """N-14: the rule above, on a module written for it: a test without a check, one that runs the reference on
+    the vectors (directly, through a helper, or on the command line) and one whose helper asserts."""
+    src = '''
+def _same(a, b):
+    assert a == b
+
+def _ref_run(files):
+    return runner.run("reference", files=files)
+
+def test_no_check():
+    """W-1"""
+    weights.hard_weights(4, 1)
+
+def test_reference_on_its_vectors(files):
+    """W-2"""
+    res = runner.run("reference", files=files)
+    assert res.failed == 0
+
+def test_reference_adapter_on_its_vectors(files):
+    """W-3"""
+    assert runner.run(ReferenceAdapter(), files=files).failed == 0
+
+def test_through_a_helper(files):
+    """W-4"""
+    assert _ref_run(files).failed == 0
+
+def test_command_line():
+    """W-5"""
+    assert main(["conformance", "run", "--impl", "reference"]) == 0
+
+def test_jax_on_the_vectors(files):
+    """W-6"""
+    assert runner.run("jax", files=files).failed == 0
+
+def test_by_hand():
+    """W-7"""
+    _same(weights.hard_weights(2, 1).tolist(), [1.0, 0.0])
+
+def test_raises():
+    """W-8"""
+    with pytest.raises(ValueError, match="^d must"):
+        weights.hard_weights(2, 5)
+
+class TestGroup:
+    def test_in_a_class(self):
+        """W-9"""
+        np.testing.assert_allclose(weights.hard_weights(1, 1), [1.0])
+'''
+    got = {name: (checks, selfref) for name, (_, checks, selfref) in classify(src).items()}
+    assert got == {"test_no_check": (False, False), "test_reference_on_its_vectors": (True, True),
+                   "test_reference_adapter_on_its_vectors": (True, True), "test_through_a_helper": (True, True),
+                   "test_command_line": (True, True), "test_jax_on_the_vectors": (True, False),
+                   "test_by_hand": (True, False), "test_raises": (True, False),
+                   "TestGroup.test_in_a_class": (True, False)}
+
+
+def test_every_requirement_id_is_named_by_a_test_that_checks_it():
+    """N-14: every requirement id in spec/ is named in the docstring of a test that counts by the rule above.
 
     Only docstrings of test functions count: an id in a comment, a helper or
     conftest.py does not make a rule tested.
     """
-    docs = "\n".join(_test_docstrings().values())
-    missing = [i for i in spec_ids() if not re.search(rf"(?<![A-Z-]){re.escape(i)}(?!\d)", docs)]
-    assert not missing, f"requirement ids no test docstring names: {missing}"
+    tests = _all_tests()
+    assert len(tests) > 300, len(tests)  # every test folder was read
+    counting = "\n".join(doc for doc, checks, selfref in tests.values() if checks and not selfref)
+    missing = {}
+    for i in spec_ids():
+        if not _named(i, counting):
+            missing[i] = [t for t, (doc, _, _) in tests.items() if _named(i, doc)]
+    assert not missing, ("requirement ids no counting test names (with the tests that name them but do not count): "
+                         f"{missing}")
+
+
+def test_no_test_compares_an_expression_with_itself():
+    """N-14: no assert compares an expression with the same expression (``assert x == x``,
+    ``assert_allclose(a, a)``): such a check passes whatever the code does."""
+    same = []
+    for p in sorted((ROOT / "tests").rglob("test_*.py")):
+        for node in ast.walk(ast.parse(p.read_text())):
+            pairs = []
+            if isinstance(node, ast.Compare) and len(node.ops) == 1:
+                pairs.append((node.left, node.comparators[0]))
+            if isinstance(node, ast.Call) and _call_name(node).startswith("assert") and len(node.args) >= 2:
+                pairs.append((node.args[0], node.args[1]))
+            for a, b in pairs:
+                # The same call twice is a determinism check ([N-9]); the same name or constant is not a check.
+                if ast.dump(a) == ast.dump(b) and not isinstance(a, ast.Call) and not (
+                        isinstance(a, ast.Attribute) and isinstance(a.value, ast.Call)):
+                    same.append(f"{p.relative_to(ROOT)}:{node.lineno}: {ast.unparse(node)[:100]}")
+    assert not same, same
 
 
 def test_only_the_missing_levels_skip_is_tolerated():
     """With SOFTRTC_REQUIRE_ALL=1 a skip fails the run unless its reason is exactly the missing
     benchmark levels; a missing package, or a reason that merely mentions ../shared, is not tolerated."""
-    from conftest import SHARED_LEVELS_REASON, tolerated_skip
+    from tests.conftest import SHARED_LEVELS_REASON, tolerated_skip
 
     assert tolerated_skip(("f.py", 3, f"Skipped: {SHARED_LEVELS_REASON}"))
     assert not tolerated_skip(("f.py", 3, "Skipped: needs kinetix-env"))
