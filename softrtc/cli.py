@@ -21,6 +21,7 @@ _SUBCOMMAND_MODULES = [
     ("softrtc.conformance.cli", "conformance", None),
     ("softrtc.jax.cli", "bench", "jax"),
     ("softrtc.arm.cli", "arm", "arm"),
+    ("softrtc.torch.cli", "torch", None),  # adds `bench torch` and `arm torch`; checks its modules itself
     ("softrtc.kinetix.cli", "kinetix", "kinetix"),
 ]
 
