@@ -62,7 +62,8 @@ def test_wheel_holds_the_three_packages_and_their_data(dists):
         assert f"softrtc/{module}" in names
     assert not any(n.startswith("softrtc/reference/cli") for n in names)
     members = tarfile.open(sdist).getnames()
-    for path in ("reference/weights.py", "conformance/vectors/index.json", "spec/00-overview.md",
+    for path in ("reference/weights.py", "conformance/vectors/index.json", "conformance/ports/js/protocol.js",
+                 "conformance/ports/js/softrtc.js", "spec/00-overview.md",
                  "tests/reference/test_reference_weights.py", "LICENSE"):
         assert any(m.endswith(path) for m in members), path
 
