@@ -104,11 +104,13 @@ def add_subparsers(subparsers) -> None:
     ft.add_argument("--no-progress", action="store_true", help="hide progress bars")
     ft.set_defaults(func=_finetune)
 
-    be = sub.add_parser("bench", help="harness env steps/s vs bare env steps/s, and rollout compile time")
+    be = sub.add_parser("bench", help="cold and warm compile time and env steps/s of each rollout family "
+                                      "against the bare env, side by side")
     be.add_argument("--level", type=nonempty(), default="grasp_easy", help="level name (default grasp_easy)")
     be.add_argument("--num-envs", type=int_in("value", 1, NUM_ENVS_MAX), default=64,
                     help="parallel environments (default 64)")
-    be.add_argument("--method", type=nonempty(), default="naive", help="sampler method (default naive)")
+    be.add_argument("--method", type=nonempty(), default=None,
+                    help="measure this method's family only (default: naive and inference_soft, one per family)")
     be.add_argument("--repeats", type=int_in("value", 1, REPEATS_MAX), default=1,
                     help="timed repetitions of each rollout (default 1)")
     be.add_argument("--seed", type=int_in("value", 0, SEED_MAX), default=0, help="rollout seed (default 0)")
@@ -117,6 +119,13 @@ def add_subparsers(subparsers) -> None:
     be.add_argument("--out", type=output_file(), default=None, help="optional JSON output file")
     be.add_argument("--no-progress", action="store_true", help="hide progress bars")
     be.set_defaults(func=_bench)
+
+    from .pipeline_cli import add_cache_options, add_distributed_options, add_pipeline_subparsers
+
+    for p in (ev, ft):
+        add_cache_options(p)
+    add_distributed_options(ev)
+    add_pipeline_subparsers(sub)
 
 
 def _eval(args) -> int:
@@ -127,6 +136,10 @@ def _eval(args) -> int:
 
 
 def _eval_inner(args) -> int:
+    from .pipeline_cli import apply_cache_options, apply_distributed_options
+
+    apply_distributed_options(args)  # [KD-1]: before any other JAX work
+    apply_cache_options(args)
     import flax.nnx as nnx
 
     from softrtc.jax.policy import FlowPolicy, PolicyConfig
@@ -188,7 +201,11 @@ def _eval_inner(args) -> int:
         d = sources[spec.label][1]
         return fresh if d is None else cache[(d, level)]
 
+    from .distributed import is_writer
+
     result = evaluate(config, policies, progress=not args.no_progress)
+    if not is_writer():  # [KD-3]: every process holds all episodes; process 0 writes them
+        return 0
     paths = write_results(result, args.out, bootstrap_resamples=config.bootstrap_resamples,
                           bootstrap_seed=config.bootstrap_seed)
     print(Path(paths["table"]).read_text(), end="")
@@ -206,6 +223,9 @@ def _finetune(args) -> int:
 
 
 def _finetune_inner(args) -> int:
+    from .pipeline_cli import apply_cache_options
+
+    apply_cache_options(args)
     from . import data as kdata
     from . import env as kenv
     from .finetune import finetune_level
@@ -258,18 +278,13 @@ def _finetune_inner(args) -> int:
 
 def _bench(args) -> int:
     try:
-        from .bench import bench_harness
-        res = bench_harness(args.level, num_envs=args.num_envs, method=args.method, seed=args.seed,
+        from .compile_bench import FAMILY_METHODS, bench_compile, format_compile_bench
+        methods = (args.method,) if args.method is not None else tuple(FAMILY_METHODS.values())
+        res = bench_compile(args.level, num_envs=args.num_envs, methods=methods, seed=args.seed,
                             levels_dir=args.levels_dir, repeats=args.repeats, progress=not args.no_progress)
     except (ValueError, OSError) as exc:
         return _fail("bench", exc)
-    print(f"level {res['level']}, {res['num_envs']} envs, {res['env_steps']} env steps, method {res['method']}, "
-          f"policy {res['policy_params']:,} params, {res['num_devices']} device(s): {res['device']}")
-    print(f"harness: {res['harness_steps_per_s']:.0f} env steps/s (run {res['harness_run_s']:.1f} s, "
-          f"compile {res['harness_compile_s']:.1f} s)")
-    print(f"bare env: {res['bare_steps_per_s']:.0f} env steps/s (run {res['bare_run_s']:.1f} s, "
-          f"compile {res['bare_compile_s']:.1f} s)")
-    print(f"ratio harness / bare: {res['ratio']:.3f}")
+    print(format_compile_bench(res), end="")
     if args.out:
         try:
             Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import time
 from typing import Sequence
 
 import flax.nnx as nnx
@@ -30,6 +29,7 @@ from softrtc.jax.policy import FlowPolicy
 from softrtc.jax.sampler import conditioning_table, naive_conditioning, rtc_sample_conditioned, select_conditioning
 from softrtc.reference._validate import check_int, real_array
 
+from . import cache
 from . import env as kenv
 from .limits import EPISODE_STEPS_MAX, EPISODE_STEPS_MIN
 from .methods import MethodSpec, method_family, rollout_weight_table
@@ -182,10 +182,14 @@ class Rollout:
         rep = NamedSharding(mesh, PartitionSpec())
         env_axis = NamedSharding(mesh, PartitionSpec("env"))
         self._shardings = (rep, env_axis)
-        fn = _build_rollout_fn(template, graphdef, family, self.H, self.A, s, num_flow_steps, num_chunks)
-        self._jit = jax.jit(fn, in_shardings=(rep, rep, rep, env_axis, env_axis))
+        self._fn = _build_rollout_fn(template, graphdef, family, self.H, self.A, s, num_flow_steps, num_chunks)
+        # Everything the traced program closes over ([KC-3]); argument shapes and devices are added by the cache.
+        self._program_config = ("kinetix_rollout", family, type(policy).__qualname__, policy.obs_dim, self.A,
+                                policy.config, s, num_flow_steps, num_chunks, template.action_noise_std,
+                                template.env_params, template.static_env_params)
         self._compiled = None
         self.compile_s = None
+        self.compile_source = None
 
     def _args(self, policy, spec, level, keys, delays):
         policy = _check_policy(policy)
@@ -220,20 +224,24 @@ class Rollout:
         params = nnx.state(policy)
         return params, level_state, table, keys, jnp.asarray(ds, jnp.int32)
 
+    def _compile(self, args) -> None:
+        # [KC-3]: through the program cache (skips tracing for a configuration compiled before);
+        # outputs replicated, so with several processes every one gets all episodes ([KD-2]).
+        rep, env_axis = self._shardings
+        self._compiled = cache.compile_program("kinetix_rollout", self._fn, args, (rep, rep, rep, env_axis, env_axis),
+                                               rep, config=self._program_config)
+        self.compile_s, self.compile_source = self._compiled.seconds, self._compiled.source
+
     def compile(self, policy, spec, level, keys, delays) -> float:
-        """Lower and compile for these argument shapes; returns and stores ``compile_s``."""
-        args = self._args(policy, spec, level, keys, delays)
-        t0 = time.perf_counter()
-        self._compiled = self._jit.lower(*args).compile()
-        self.compile_s = time.perf_counter() - t0
+        """Compile (or load, [KC-3]) for these argument shapes; returns and stores ``compile_s``
+        (``compile_source`` says ``"compiled"``, ``"disk"`` or ``"memory"``)."""
+        self._compile(self._args(policy, spec, level, keys, delays))
         return self.compile_s
 
     def __call__(self, policy, spec, level, keys, delays) -> dict:
         args = self._args(policy, spec, level, keys, delays)
         if self._compiled is None:
-            t0 = time.perf_counter()
-            self._compiled = self._jit.lower(*args).compile()
-            self.compile_s = time.perf_counter() - t0
+            self._compile(args)
         out = jax.device_get(self._compiled(*args))
         out = {k: np.asarray(v)[: self.num_envs] for k, v in out.items()}
         out["delays"] = np.asarray(delays, np.int64)

@@ -1,0 +1,185 @@
+"""Tests of the compile cache ([KC-1]..[KC-5]) on small programs (no simulator)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("jax")
+pytest.importorskip("kinetix")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+
+from softrtc.kinetix import cache  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def restore_cache():
+    before = dict(cache._state)
+    yield
+    cache.clear_memory()
+    if before["configured"]:
+        cache.enable_compile_cache(before["dir"])
+    else:
+        cache.enable_compile_cache(None)
+        cache._state["configured"] = False
+
+
+def test_default_cache_dir_from_environment(monkeypatch, tmp_path):
+    """KC-1: $SOFTRTC_JAX_CACHE names the folder, 'off' disables it, else the per-user XDG folder."""
+    monkeypatch.setenv(cache.CACHE_ENV, str(tmp_path / "c"))
+    assert cache.default_cache_dir() == tmp_path / "c"
+    for off in ("off", "OFF", "0", "", "none"):
+        monkeypatch.setenv(cache.CACHE_ENV, off)
+        assert cache.default_cache_dir() is None
+    monkeypatch.delenv(cache.CACHE_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache.default_cache_dir() == tmp_path / "xdg" / "softrtc" / "jax"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert cache.default_cache_dir() == Path.home() / ".cache" / "softrtc" / "jax"
+
+
+def test_enable_sets_jax_cache_with_lock_and_rejects_unwritable(tmp_path, restore_cache):
+    """KC-1, KC-2: JAX's cache goes to DIR/xla with a size bound (which turns on its file lock);
+    an explicit folder that cannot be written is a ValueError naming path; None turns it off."""
+    d = cache.enable_compile_cache(tmp_path / "cc")
+    assert d == tmp_path / "cc" and (d / "xla").is_dir() and (d / "programs").is_dir()
+    assert jax.config.jax_compilation_cache_dir == str(d / "xla")
+    assert jax.config.jax_compilation_cache_max_size == cache.MAX_CACHE_BYTES > 0
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == cache.MIN_COMPILE_S
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    with pytest.raises(ValueError, match="^path "):
+        cache.enable_compile_cache(blocker / "sub")
+    assert cache.enable_compile_cache(None) is None and cache.cache_dir() is None
+    assert jax.config.jax_compilation_cache_dir is None
+
+
+def test_default_folder_unwritable_turns_cache_off_with_warning(monkeypatch, tmp_path, restore_cache):
+    """KC-1: an unwritable default folder never stops a run: the cache is off, with a warning."""
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    monkeypatch.setenv(cache.CACHE_ENV, str(blocker / "sub"))
+    with pytest.warns(UserWarning, match="compile cache off"):
+        assert cache.enable_compile_cache(True) is None
+
+
+def _program(tmp_path):
+    mesh = Mesh(np.array(jax.devices()), ("env",))
+    rep, env = NamedSharding(mesh, PartitionSpec()), NamedSharding(mesh, PartitionSpec("env"))
+
+    def fn(params, keys, d):
+        x = jax.vmap(lambda k: jax.random.normal(k, (3,)))(keys)
+        return {"x": x.sum(1) * params["w"] + d, "n": x.shape[0]}
+
+    args = ({"w": jnp.float32(2.0)}, jax.random.split(jax.random.key(3), 4), jnp.arange(4, dtype=jnp.float32))
+    return fn, args, (rep, env, env), rep
+
+
+def test_program_cache_round_trip_and_damaged_entry(tmp_path, restore_cache):
+    """KC-3, KC-4: a program is compiled once, then comes from memory, then (memory cleared, as a new
+    process) from disk, each giving the outputs of a plain jax.jit of the function; a damaged file warns,
+    recompiles and is replaced; a different config is a different program."""
+    cache.enable_compile_cache(tmp_path / "cc")
+    fn, args, shard, out = _program(tmp_path)
+    want = jax.jit(fn)(*args)  # the same XLA program, compiled without the cache
+    p1 = cache.compile_program("t", fn, args, shard, out, config=("a",))
+    assert p1.source == "compiled"
+    np.testing.assert_array_equal(np.asarray(p1(*args)["x"]), np.asarray(want["x"]))
+    assert cache.compile_program("t", fn, args, shard, out, config=("a",)).source == "memory"
+    cache.clear_memory()
+    p2 = cache.compile_program("t", fn, args, shard, out, config=("a",))
+    assert p2.source == "disk"
+    np.testing.assert_array_equal(np.asarray(p2(*args)["x"]), np.asarray(want["x"]))
+    files = list((tmp_path / "cc" / "programs").glob("t-*.bin"))
+    assert len(files) == 1
+    files[0].write_bytes(b"not a program")
+    cache.clear_memory()
+    with pytest.warns(UserWarning, match="unreadable"):
+        p3 = cache.compile_program("t", fn, args, shard, out, config=("a",))
+    assert p3.source == "compiled" and files[0].stat().st_size > 100
+    assert cache.compile_program("t", fn, args, shard, out, config=("b",)).source == "compiled"
+    assert len(list((tmp_path / "cc" / "programs").glob("t-*.bin"))) == 2
+    with pytest.raises(ValueError, match="^args must have the structure"):
+        p1(args[0], args[1])
+
+
+def test_program_key_changes_with_every_input(restore_cache):
+    """KC-3: the key covers name, config, argument shapes, dtypes and shardings and the source digest."""
+    mesh = Mesh(np.array(jax.devices()), ("env",))
+    rep = NamedSharding(mesh, PartitionSpec())
+    a = [jax.ShapeDtypeStruct((4,), jnp.float32, sharding=rep)]
+    tree = jax.tree.structure((1,))
+    base = cache.program_key("n", ("c",), a, [rep], tree, rep)
+    assert base == cache.program_key("n", ("c",), a, [rep], tree, rep)
+    others = [cache.program_key("m", ("c",), a, [rep], tree, rep),
+              cache.program_key("n", ("d",), a, [rep], tree, rep),
+              cache.program_key("n", ("c",), [jax.ShapeDtypeStruct((5,), jnp.float32, sharding=rep)], [rep], tree,
+                                rep),
+              cache.program_key("n", ("c",), [jax.ShapeDtypeStruct((4,), jnp.int32, sharding=rep)], [rep], tree,
+                                rep)]
+    assert len({base, *others}) == 5
+    fp = cache.source_fingerprint()
+    assert len(fp) == 64 and fp == cache.source_fingerprint()
+
+
+_WRITER = r"""
+import sys, jax, jax.numpy as jnp, numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from softrtc.kinetix import cache
+cache.enable_compile_cache(sys.argv[1])
+rep = NamedSharding(Mesh(np.array(jax.devices()), ("env",)), PartitionSpec())
+def fn(x):
+    for i in range(60):
+        x = jnp.sin(x) * 1.01 + i
+    return x
+p = cache.compile_program("shared", fn, (jnp.ones(3),), (rep,), rep, config=("s",))
+print(p.source, float(p(jnp.ones(3))[0]))
+"""
+
+
+@pytest.mark.slow
+def test_two_processes_share_one_cache_folder(tmp_path):
+    """KC-2, KC-4: two processes compiling the same program into one folder at once both succeed with
+    equal results, and a third process loads it from disk."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = [sys.executable, "-c", _WRITER, str(tmp_path / "cc")]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=600)[0].split() for p in procs]
+    assert all(p.returncode == 0 for p in procs)
+    assert outs[0][1] == outs[1][1]
+    third = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert third.returncode == 0
+    assert third.stdout.split() == ["disk", outs[0][1]]
+
+
+def test_bench_ratios_and_table_by_hand():
+    """KC-6: warm/cold, rollout cold compile / bare env's, and throughput / bare env's, from hand values;
+    the table prints them with the targets; a family without the bare env is an error."""
+    from softrtc.kinetix.compile_bench import add_ratios, format_compile_bench
+
+    progs = {"bare": {"cold_s": 20.0, "warm_s": 1.0, "run_s": 16.0, "warm_source": "disk"},
+             "rtc": {"cold_s": 25.0, "warm_s": 2.0, "run_s": 20.0, "warm_source": "disk", "method": "naive"}}
+    out = add_ratios(progs, 16384)
+    assert out["bare"]["steps_per_s"] == 1024.0 and out["rtc"]["steps_per_s"] == 819.2
+    assert out["bare"]["warm_over_cold"] == 0.05 and out["rtc"]["warm_over_cold"] == 0.08
+    assert out["rtc"]["cold_over_bare"] == 1.25 and out["rtc"]["throughput_over_bare"] == 0.8
+    text = format_compile_bench({"level": "grasp_easy", "num_envs": 64, "env_steps": 16384, "policy_params": 10,
+                                 "num_devices": 1, "device": "cpu", "cpu": "x", "programs": out})
+    assert "rollout rtc | 25.0 | 2.00 (disk) | 0.080 | 20.0 | 819 | compile 1.25x, throughput 0.800x" in text
+    assert "warm/cold <= 0.10" in text
+    with pytest.raises(ValueError, match="^programs must hold 'bare'"):
+        add_ratios({"rtc": progs["rtc"]}, 10)
+    with pytest.raises(ValueError, match="^programs entries must have a positive float 'run_s'"):
+        add_ratios({"bare": dict(progs["bare"], run_s=0.0), "rtc": progs["rtc"]}, 10)
