@@ -71,6 +71,17 @@ def add_subparsers(subparsers) -> None:
     a.set_defaults(func=run_arm)
 
 
+_OPTIONS = {"execute_horizon": "--execute-horizon", "num_steps": "--steps", "train_batch": "--train-batch",
+            "train_calls": "--train-calls", "batch_sizes": "--batch-sizes", "finetune_steps": "--finetune-steps",
+            "delays": "--delays", "seed0": "--seed0"}
+
+
+def _as_option(message: str) -> str:
+    """A config field's error in terms of the command's option ([N-11])."""
+    field = message.split(" ", 1)[0]
+    return _OPTIONS.get(field, "--" + field.replace("_", "-")) + message[len(field):]
+
+
 def run_bench(args) -> int:
     prog = getattr(args, "_prog", "softrtc bench torch")
     if importlib.util.find_spec("torch") is None:
@@ -90,7 +101,7 @@ def run_bench(args) -> int:
                                 execute_horizon=args.execute_horizon, seed=args.seed, arch=args.arch,
                                 threads=args.threads)
     except ValueError as exc:
-        return command_error(prog, str(exc))
+        return command_error(prog, _as_option(str(exc)))
     res = bench.run_benchmark(cfg, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
     print(bench.format_table(res))
     try:
@@ -123,7 +134,7 @@ def run_arm(args) -> int:
         protocol = arm.Protocol(delays=tuple(args.delays), episodes=args.eval_episodes, seed0=args.seed0,
                                 max_steps=args.max_steps)
     except ValueError as exc:
-        return command_error(prog, str(exc))
+        return command_error(prog, _as_option(str(exc)))
     torch.set_num_threads(args.threads)
     res = arm.run_experiment(args.out, args.work, recipe, protocol, args.demos, args.retrain,
                              progress=lambda m: print(m, file=sys.stderr, flush=True))

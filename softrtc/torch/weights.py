@@ -135,8 +135,8 @@ def effective_endpoint(H: int, d, e, s=None, overflow: str = "clip"):
 def soft_weights(H: int, d, window=None, s=None, *, dtype=None, device=None) -> torch.Tensor:
     """Soft RTC weights for delays d ([W-2], [W-6], [W-7]); window default ``SoftWindow()``.
 
-    >>> soft_weights(8, torch.tensor([1, 2, 3]), SoftWindow(), 4).tolist()[1]
-    [1.0, 1.0, 0.6666666865348816, 0.3333333432674561, 0.0, 0.0, 0.0, 0.0]
+    >>> [[round(x, 4) for x in row] for row in soft_weights(8, torch.tensor([1, 2]), SoftWindow(), 4).tolist()]
+    [[1.0, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [1.0, 1.0, 0.6667, 0.3333, 0.0, 0.0, 0.0, 0.0]]
     """
     H = v.integer("H", H, 1, MAX_WINDOW)
     window = check_window(H, SoftWindow() if window is None else window)

@@ -77,6 +77,9 @@ def test_bench_config_and_command_line_checks(tmp_path):
                                     capture_output=True, text=True, timeout=120)
     r = run("--calls", "0")
     assert r.returncode == 2 and "--calls" in r.stderr
+    r = run("--execute-horizon", "8", "--arch", "tiny")  # H = 8: s must leave an overlap
+    assert r.returncode == 2 and r.stderr.startswith("softrtc bench torch: error: --execute-horizon must be an "
+                                                     "integer in [1, 7], got 8")
     r = run("--table", str(tmp_path / "missing.json"))
     assert r.returncode == 2 and "--table" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     res = bench.run_benchmark(bench.BenchConfig(calls=1, warmup=0, batch_sizes=(1,), train_calls=0, arch="tiny"))
