@@ -11,13 +11,16 @@ from softrtc._cli_util import command_error, comma_list, int_in, output_file
 HINT = "needs the 'torch' extra (missing module torch): pip install 'softrtc[torch]'"
 
 
-def _group(subparsers, name: str, help_text: str):
-    """The sub-subparsers action of group ``name`` (``bench``, ``arm``), created when absent or unavailable."""
+def _group(subparsers, name: str, help_text: str, create: bool = True):
+    """The sub-subparsers action of group ``name`` (``bench``, ``arm``); when the group is absent or stands for
+    a missing extra, a new group (``create``) or None."""
     parser = subparsers.choices.get(name)
     if parser is not None:
         for action in parser._actions:
             if isinstance(action, argparse._SubParsersAction):
                 return action
+    if not create:
+        return None
     parser = argparse.ArgumentParser(prog=f"{subparsers._prog_prefix} {name}", description=help_text)
     subparsers.choices[name] = parser
     return parser.add_subparsers(dest=f"{name}_command", metavar="SUBCOMMAND")
@@ -47,7 +50,10 @@ def add_subparsers(subparsers) -> None:
     p.add_argument("--strict", action="store_true", help="exit with status 1 when a target fails")
     p.set_defaults(func=run_bench)
 
-    arm = _group(subparsers, "arm", "pymunk arm sorting study")
+    # `arm torch` needs the arm extra too: without it the arm group keeps saying so
+    arm = _group(subparsers, "arm", "pymunk arm sorting study", create=False)
+    if arm is None:
+        return
     a = arm.add_parser("torch", help="train the PyTorch arm policies with the JAX recipe and evaluate them beside "
                                      "the shipped JAX policies in the simulated-delay executor ([PT-9])")
     a.add_argument("--out", type=output_file(), default="results/torch/arm.json", help="result JSON")
