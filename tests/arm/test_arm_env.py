@@ -158,13 +158,13 @@ def test_action_validation():
         a[i] = bad
         with pytest.raises(ValueError, match=rf"action\[{i}\]"):
             env.step(a)
-    with pytest.raises(ValueError, match="shape"):
+    with pytest.raises(ValueError, match=r"^action must have shape \(4,\), got \(3,\)$"):
         env.step(good[:3])
     a = good.copy()
     a[0] = np.nan
-    with pytest.raises(ValueError, match="finite"):
+    with pytest.raises(ValueError, match="^action must be finite"):
         env.step(a)
-    with pytest.raises(ValueError, match="action"):
+    with pytest.raises(ValueError, match="^action must be a real"):
         env.step(["a", "b", "c", "d"])
     assert env.t == 0  # rejected actions do not advance time
     _, info = env.step(good)

@@ -1,5 +1,6 @@
 """Argument validation of the arm test bed (spec/10-arm.md [A-12], [R-7], [R-8]; spec/00-overview.md [N-7])."""
 
+import re
 import dataclasses
 import os
 
@@ -28,9 +29,10 @@ SMALL = ArmPolicyConfig(horizon=4, execute_horizon=2, num_steps=1, channel_dim=8
 
 
 def _raises(name, fn, *args, **kw):
+    """fn(*args, **kw) raises ValueError whose message starts with the argument ``name`` ([N-7])."""
     with pytest.raises(ValueError) as e:
         fn(*args, **kw)
-    assert name in str(e.value), str(e.value)
+    assert re.match(rf"{re.escape(name)}(?![\w])", str(e.value)), f"message does not start with {name!r}: {e.value}"
 
 
 @pytest.fixture(scope="module")
@@ -79,9 +81,9 @@ def test_arrays_reject_non_real_ragged_and_empty(obs, pol):
         _raises("prior", pol.generate, obs, bad, 1, jax.random.key(0))
     d = pol.normalizer.to_dict()
     for conv in (str, bool, complex):
-        _raises("obs_mean", Normalizer.from_dict, {**d, "obs_mean": [conv(x) for x in d["obs_mean"]]})
-    for meth in (pol.normalizer.obs, pol.normalizer.act, pol.normalizer.unact):
-        _raises("", meth, np.zeros((0, FEATURE_DIM if meth == pol.normalizer.obs else 4)))
+        _raises("data['obs_mean']", Normalizer.from_dict, {**d, "obs_mean": [conv(x) for x in d["obs_mean"]]})
+    for name, meth in (("features", pol.normalizer.obs), ("a", pol.normalizer.act), ("z", pol.normalizer.unact)):
+        _raises(name, meth, np.zeros((0, FEATURE_DIM if name == "features" else 4)))
     _raises("methods", load_policies, None, [])
     # valid calls
     assert policy_features(obs).shape == (FEATURE_DIM,)
@@ -91,8 +93,8 @@ def test_arrays_reject_non_real_ragged_and_empty(obs, pol):
 
 def test_huge_integers_are_value_errors():
     """[N-7] [A-12] [R-8] an integer too large for a float is a ValueError naming the argument, not OverflowError."""
-    _raises("motor_gain", ArmConfig, motor_gain=HUGE)
-    _raises("link_lengths", ArmConfig, link_lengths=(HUGE, 0.28, 0.1))
+    _raises("config.motor_gain", ArmConfig, motor_gain=HUGE)
+    _raises("config.link_lengths", ArmConfig, link_lengths=(HUGE, 0.28, 0.1))
     _raises("tool_angle", inverse_kinematics, [0.0, 0.25], None, HUGE)
     _raises("lookahead", ExpertConfig, lookahead=HUGE)
     _raises("added_latency_s", RuntimeConfig, added_latency_s=HUGE)
