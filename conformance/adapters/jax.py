@@ -4,19 +4,39 @@ softrtc.jax mirrors the reference module for module, so each method converts
 the interface's JSON-shaped arguments (rule and window dicts, field parameter
 dicts) with the reference helpers and calls the JAX function of the same name.
 The JAX samplers return only the chunk, so sampler cases check the chunk
-([CF-11]: a trace of None means "chunk only").
+([CF-11]: a trace of None means "chunk only"). Most of a run's time is XLA
+compilation, one per function and input shape; compiled code is kept in JAX's
+persistent compilation cache ([CF-17]).
 """
 
 from __future__ import annotations
 
 import functools
 import importlib
-import json
 import importlib.util
+import json
+import os
+from pathlib import Path
 
 import numpy as np
 
 from .reference import rule_from_dict, window_from_dict
+
+
+def _use_compilation_cache() -> None:
+    """Keep compiled kernels across runs in ``$XDG_CACHE_HOME/softrtc/jax`` (``~/.cache/softrtc/jax``) unless
+    the user chose a cache (JAX_COMPILATION_CACHE_DIR) or turned it off (SOFTRTC_JAX_CACHE=0) ([CF-17])."""
+    if os.environ.get("SOFTRTC_JAX_CACHE") == "0" or os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return
+    import jax
+
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    jax.config.update("jax_compilation_cache_dir", str(Path(base) / "softrtc" / "jax"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # most kernels here compile in ms
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+_use_compilation_cache()
 
 
 def _mod(name: str):
@@ -162,10 +182,10 @@ def _jitted_sampler(kind: str):
     def run(params, obs, noise, prior, w, T, max_guidance):
         field = _mod("velocity").ReferenceVelocityField(params)
         if kind == "naive":
-            return _mod("sampler").naive_sample(field, obs, noise, T)
+            return _mod("sampler").naive_sample(field, obs, noise, T, unroll=False)
         if kind == "rtc":
-            return _mod("sampler").rtc_sample(field, obs, noise, prior, w, T)
-        return _mod("guidance").guided_sample(field, obs, noise, prior, w, T, max_guidance)
+            return _mod("sampler").rtc_sample(field, obs, noise, prior, w, T, unroll=False)
+        return _mod("guidance").guided_sample(field, obs, noise, prior, w, T, max_guidance, unroll=False)
 
     return jax.jit(run, static_argnums=(5, 6))
 
@@ -185,5 +205,29 @@ def _method_weights(self, method, H, s, d, window):
 # method_weights only where softrtc.jax provides a methods module ([S-6]); otherwise unsupported.
 if importlib.util.find_spec("softrtc.jax.methods") is not None:
     JaxAdapter.method_weights = _method_weights
+
+
+def _f32(x):
+    """float64 arrays (and the field's parameter dict) as float32: the twin computes in float32, and a
+    float64 argument makes JAX compile a conversion kernel for every new shape ([CF-17])."""
+    if isinstance(x, np.ndarray) and x.dtype == np.float64:
+        return x.astype(np.float32)
+    if isinstance(x, dict) and x and all(isinstance(v, np.ndarray) for v in x.values()):
+        return {k: _f32(v) for k, v in x.items()}
+    return x
+
+
+def _float32_inputs(method):
+    @functools.wraps(method)
+    def call(self, *args):
+        return method(self, *(_f32(a) for a in args))
+    return call
+
+
+for _name in ("prefix_weights", "corrupt", "token_times", "loss", "batch_loss", "velocity", "velocity_vjp",
+              "naive_sample", "rtc_sample", "guided_sample", "sample_delay", "shift_prior", "execute_chunks",
+              "difference_norm", "action_delta", "action_jerk", "boundary_jump", "bootstrap_interval",
+              "standard_error"):
+    setattr(JaxAdapter, _name, _float32_inputs(getattr(JaxAdapter, _name)))
 
 ADAPTER = JaxAdapter()
