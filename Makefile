@@ -13,7 +13,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	# The CPU build of torch first, so that the torch extra (torch>=2.2) is already met and pip fetches no CUDA build.
 	$(PY) -m pip install --quiet "torch==2.13.0"
-	$(PY) -m pip install --quiet -e ".[all]"
+	# setuptools notes on every editable install of a flat layout that a folder named like the package (here
+	# softrtc/, the package itself) may shadow it; the notice is about editable installs, not this project.
+	PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install --quiet -e ".[all]"
 	touch $(STAMP)
 
 # LeRobot's RTC modules for its conformance adapter (spec/41-thirdparty.md [TP-6]): without its declared

@@ -49,23 +49,40 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the main job: worked examples, weights table, and every "
                                        "available check on built-in defaults")
     demo.set_defaults(func=_demo)
+    unavailable = {}
     for mod_name, label, extra in _SUBCOMMAND_MODULES:
         missing = _missing_module(extra)
         if missing:
-            _unavailable(sub, label, extra, missing)
+            unavailable[label] = f"the '{extra}' extra (missing module {missing}): pip install 'softrtc[{extra}]'"
+            _unavailable(sub, label, f"needs {unavailable[label]}")
             continue
         importlib.import_module(mod_name).add_subparsers(sub)
+    for label, message in unavailable.items():
+        # Another module may have added its own subcommands to the same group (`bench torch` beside the
+        # missing `bench runtime`): the group's unknown subcommands then name the missing extra.
+        if sub.choices[label].get_default("func") is None:
+            _hint_unknown_subcommands(sub.choices[label], message)
     leaf_progs(parser)
     return parser
 
 
-def _unavailable(sub, label: str, extra: str, missing: str) -> None:
+def _unavailable(sub, label: str, message: str) -> None:
     """A command whose extra is not installed: listed in the help, and run it says which extra in one line."""
-    hint = f"pip install 'softrtc[{extra}]'"
-    message = f"needs the '{extra}' extra (missing module {missing}): {hint}"
     parser = sub.add_parser(label, help=f"unavailable: {message}", add_help=False)
     parser.add_argument("rest", nargs=argparse.REMAINDER)
     parser.set_defaults(func=lambda args: command_error(f"softrtc {label}", message))
+
+
+def _hint_unknown_subcommands(group: argparse.ArgumentParser, message: str) -> None:
+    """An unknown subcommand of ``group`` is reported in one line that also names the missing extra."""
+    usage_error = group.error
+
+    def error(text: str):
+        if "invalid choice" in text:
+            sys.exit(command_error(group.prog, f"{text}; the others need {message}"))
+        usage_error(text)
+
+    group.error = error
 
 
 def _demo(args) -> int:

@@ -97,8 +97,15 @@ def test_numpy_only_install_runs_the_suite_and_the_reference_tests(dists, tmp_pa
     assert "0 failed" in run.stdout, run.stdout[-2000:]
     missing = _run([bin_ / "softrtc", "bench", "runtime"], cwd=work, env=env)
     assert missing.returncode == 2
-    assert missing.stderr.strip() == ("softrtc bench: error: needs the 'jax' extra (missing module jax): "
-                                      "pip install 'softrtc[jax]'"), missing.stderr
+    assert missing.stderr.strip().splitlines() == [
+        "softrtc bench: error: argument SUBCOMMAND: invalid choice: 'runtime' (choose from 'torch'); the others "
+        "need the 'jax' extra (missing module jax): pip install 'softrtc[jax]'"], missing.stderr
+    for command in (["arm", "train"], ["kinetix", "eval"]):
+        missing = _run([bin_ / "softrtc", *command], cwd=work, env=env)
+        extra = command[0]
+        assert missing.returncode == 2 and missing.stderr.strip().splitlines() == [
+            f"softrtc {extra}: error: needs the '{extra}' extra (missing module jax): pip install 'softrtc[{extra}]'"
+        ], missing.stderr
 
     tests = work / "tests"
     shutil.copytree(ROOT / "tests" / "reference", tests / "reference")
