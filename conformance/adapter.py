@@ -7,7 +7,7 @@ Functions are called positionally, in the order listed there; a function the
 adapter lacks makes its cases *unsupported*, never failed ([CF-9]).
 
 Load one with :func:`load_adapter`: a built-in name (``reference``, ``jax``,
-``torch``, ``torch-flipped``), ``package.module[:ATTR]`` or
+``torch``, ``torch-flipped``, ``lerobot``), ``package.module[:ATTR]`` or
 ``path/to/file.py[:ATTR]``. Without ``:ATTR`` the module's ``ADAPTER`` is used
 when present, else the module itself. A file is imported from its path under a
 module name of its own, never by its stem ([CF-12]).
@@ -30,6 +30,7 @@ BUILTIN = {
     "jax": "softrtc.conformance.adapters.jax:ADAPTER",
     "torch": "softrtc.conformance.adapters.torch:ADAPTER",
     "torch-flipped": "softrtc.conformance.adapters.torch_flipped:ADAPTER",
+    "lerobot": "softrtc.conformance.adapters.lerobot:ADAPTER",
 }
 
 

@@ -22,7 +22,7 @@ def _fill(conf: argparse.ArgumentParser) -> None:
     """The `run` and `generate` subcommands on ``conf`` (`softrtc conformance` or `python -m softrtc.conformance`)."""
     sub = conf.add_subparsers(dest="conformance_command", metavar="SUBCOMMAND")
     conf.set_defaults(func=group_help(conf), command="conformance")
-    run_p = sub.add_parser("run", help="run the vectors against an adapter (reference, jax, torch, torch-flipped, "
+    run_p = sub.add_parser("run", help="run the vectors against an adapter (reference, jax, torch, torch-flipped, lerobot, "
                                        "module:ATTR or file.py:ATTR)")
     runner.add_arguments(run_p)
     run_p.set_defaults(func=runner.run_from_args)
