@@ -60,6 +60,7 @@ class Child:
     def __init__(self, argv: list, start_timeout: float, label: str):
         self.argv, self.start_timeout, self.label = list(argv), float(start_timeout), label
         self.proc = None
+        self._fields: dict = {}
         self.name = self.time_convention = None
         self.functions: list = []
 
@@ -143,8 +144,21 @@ class Child:
 
     # -- messages
     def submit(self, request: dict) -> None:
-        """Queue one request; a writer thread sends it, so a child that stops reading never blocks the runner."""
-        self._writes.put((json.dumps(request, separators=(",", ":"), allow_nan=False) + "\n").encode("utf-8"))
+        """Queue one request; a writer thread sends it, so a child that stops reading never blocks the runner.
+        A field's parameters are encoded once per field object (they repeat in every sampler case)."""
+        args = request["args"]
+        field = args.get("field")
+        if isinstance(field, dict):
+            text = self._fields.get(id(field))
+            if text is None or text[0] is not field:
+                text = self._fields[id(field)] = (field, json.dumps(field, separators=(",", ":"), allow_nan=False))
+            rest = json.dumps({k: v for k, v in args.items() if k != "field"}, separators=(",", ":"),
+                              allow_nan=False)
+            args_text = '{"field":' + text[1] + ("," + rest[1:] if len(rest) > 2 else "}")
+        else:
+            args_text = json.dumps(args, separators=(",", ":"), allow_nan=False)
+        line = '{"id":%d,"function":%s,"args":%s}\n' % (request["id"], json.dumps(request["function"]), args_text)
+        self._writes.put(line.encode("utf-8"))
 
     def receive(self, deadline: float) -> dict:
         """The next reply, or ChildLost when the child dies, passes ``deadline`` or writes a non-reply line."""
@@ -161,6 +175,8 @@ class Child:
             msg = None
         if not isinstance(msg, dict) or "id" not in msg or ("result" in msg) == ("error" in msg):
             raise ChildLost(f"protocol error: the child wrote {line[:80]!r}, not a reply ([CF-29])")
+        # Values of a reply without JSON booleans may be compared as parsed: Python's True == 1 cannot occur.
+        msg["_no_booleans"] = b"true" not in line and b"false" not in line
         return msg
 
     def _next(self, deadline: float):

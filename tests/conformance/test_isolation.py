@@ -204,3 +204,38 @@ def test_run_arguments_are_checked():
         runner.run(object(), in_process=False)
     r = _cli("--impl-cmd", "x", "--in-process")
     assert r.returncode == 2 and "--in-process" in r.stderr
+
+
+FLIPPED = """import numpy as np
+from softrtc.conformance.adapters.reference import ReferenceAdapter
+name, time_convention = "flipped-reference", "noise_at_1"
+_ref = ReferenceAdapter()
+
+def token_times(w, t):
+    return 1.0 - _ref.token_times(w, 1.0 - t)
+
+def corrupt(actions, noise, w, tau):
+    x, times = _ref.corrupt(actions, noise, w, 1.0 - tau)
+    return x, 1.0 - times
+
+def velocity(field, obs, x, t):
+    return -_ref.velocity(field, obs, x, 1.0 - np.asarray(t))
+
+def loss(pred, actions, noise, w):
+    return _ref.loss(-np.asarray(pred), actions, noise, w)
+"""
+
+
+def test_flipped_convention_through_the_protocol(tmp_path):
+    """[CF-10], [CF-29], [V-1] A noise_at_1 implementation in a child gets t' = 1 - t and u = -v in its
+    requests and has its times and velocities mapped back: a correct flipped adapter passes, the same
+    adapter declaring data_at_1 fails every time-carrying case."""
+    f = tmp_path / "flipped.py"
+    f.write_text(FLIPPED)
+    only = {"token_times", "corrupt", "velocity", "loss"}
+    res = runner.run(str(f), only=only)
+    assert res.ok and res.counts["pass"] == len(res.cases) and res.time_convention == "noise_at_1"
+    f.write_text(FLIPPED.replace('"noise_at_1"', '"data_at_1"'))
+    res = runner.run(str(f), only=only)
+    failed = {c.function for c in res.cases if c.status == "fail"}
+    assert failed == only
