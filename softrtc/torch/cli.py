@@ -44,6 +44,8 @@ def add_subparsers(subparsers) -> None:
     p.add_argument("--seed", type=int_in("value", 0, 2**31 - 1), default=0, help="seed (default 0)")
     p.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark", help="policy size (default benchmark)")
     p.add_argument("--threads", type=int_in("value", 1, 1024), default=1, help="torch threads (default 1)")
+    p.add_argument("--clock", choices=("thread", "wall"), default="thread",
+                   help="thread: the calling thread's CPU time (default; needs --threads 1), wall: elapsed time")
     p.add_argument("--out", type=output_file(), default="runs/bench_torch.json", help="JSON output")
     p.add_argument("--table", metavar="RESULT_JSON", default=None,
                    help="print the table of a result file and exit (no measurement)")
@@ -105,7 +107,7 @@ def run_bench(args) -> int:
         cfg = bench.BenchConfig(calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes),
                                 train_batch=args.train_batch, train_calls=args.train_calls, num_steps=args.steps,
                                 execute_horizon=args.execute_horizon, seed=args.seed, arch=args.arch,
-                                threads=args.threads)
+                                threads=args.threads, clock=args.clock)
     except ValueError as exc:
         return command_error(prog, _as_option(str(exc)))
     res = bench.run_benchmark(cfg, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
