@@ -1,6 +1,8 @@
 """Conformance rollouts on the arm with the simulated-delay executor (spec chapters X, S, W; spec/10-arm.md).
 
-An untrained small flow policy keeps these fast; the properties hold for any weights.
+An untrained small flow policy keeps these fast; the properties hold for any weights. Its adaLN-zero layers
+start at zero ([P-6]), which would make the output ignore flow time, so that a wrong per-token time could not
+fail a test: they are given random values here, and the first test checks that the output depends on time.
 """
 
 import numpy as np
@@ -10,7 +12,7 @@ import pytest
 pytest.importorskip("pymunk")
 
 from softrtc.arm.executor import episode_metrics, run_simulated_episode  # noqa: E402
-from softrtc.arm.policies import untrained_policy  # noqa: E402
+from softrtc.arm.policies import ArmPolicy, untrained_policy  # noqa: E402
 from softrtc.arm.policy_config import ArmPolicyConfig  # noqa: E402
 from softrtc.jax import executor as jexec  # noqa: E402
 from softrtc.jax.endpoints import offset  # noqa: E402
@@ -22,11 +24,48 @@ CFG = ArmPolicyConfig(channel_dim=16, channel_hidden_dim=32, token_hidden_dim=8,
 _CACHE = {}
 
 
+def _time_dependent(pol):
+    """``pol`` with random values in its zero-initialised adaLN layers: flow time then reaches the output."""
+    import flax.nnx as nnx
+
+    graphdef, state = nnx.split(pol.model)
+    pure = nnx.to_pure_dict(state)
+    key = jax.random.key(123)
+
+    def fill(path, leaf):
+        nonlocal key
+        if any("adaln" in str(getattr(p, "key", p)) for p in path):
+            key, sub = jax.random.split(key)
+            return 0.3 * jax.random.normal(sub, leaf.shape, leaf.dtype)
+        return leaf
+
+    nnx.replace_by_pure_dict(state, jax.tree_util.tree_map_with_path(fill, pure))
+    return ArmPolicy(nnx.merge(graphdef, state), pol.normalizer, CFG, pol.method, trained_as="untrained",
+                     window=None if pol.method != "train_soft" else pol.window)
+
+
 def policy(method, window=None):
     k = (method, None if window is None else "offset0")
     if k not in _CACHE:
-        _CACHE[k] = untrained_policy(7, method, CFG, window=window)
+        _CACHE[k] = _time_dependent(untrained_policy(7, method, CFG, window=window))
     return _CACHE[k]
+
+
+def test_the_policy_output_depends_on_flow_time():
+    """P-4, P-9, A-22: the premise of the tests below: the policy's velocity changes with the flow time of one
+    token (so a wrong per-token time changes the chunks), and the untrained policy alone would not show it."""
+    import jax.numpy as jnp
+
+    from softrtc.arm.features import FEATURE_DIM
+
+    obs = jnp.zeros((1, FEATURE_DIM))
+    x = jnp.zeros((1, CFG.horizon, 4))
+    t = jnp.full((1, CFG.horizon), 0.4)
+    t2 = t.at[0, 3].set(0.6)
+    model = policy("naive").model
+    assert float(jnp.max(jnp.abs(model(obs, x, t2) - model(obs, x, t)))) > 1e-3
+    plain = untrained_policy(7, "naive", CFG).model
+    np.testing.assert_array_equal(plain(obs, x, t2), plain(obs, x, t))
 
 
 def rollout(method, delays, seed=11, key=0, window=None):
@@ -34,13 +73,17 @@ def rollout(method, delays, seed=11, key=0, window=None):
 
 
 def test_zero_delay_same_actions_for_all_training_time_methods():
-    """S-7, E-6, W-9, C-3, A-22: with d = 0 naive, train_hard and train_soft execute identical actions."""
+    """S-7, E-6, W-9, C-3, A-22, P-9, P-14: with d = 0 train_hard and train_soft execute bitwise identical actions
+    (one sampler, zero weights), and naive, which conditions on the shared time, the same within [P-14]."""
     recs = {m: rollout(m, 0) for m in ("naive", "train_hard", "train_soft")}
-    base = recs["naive"].actions
-    assert base.shape == (STEPS, 4)
-    for m, r in recs.items():
-        np.testing.assert_array_equal(r.actions, base, err_msg=m)
-        np.testing.assert_array_equal(r.chunks, recs["naive"].chunks, err_msg=m)
+    hard = recs["train_hard"]
+    assert hard.actions.shape == (STEPS, 4)
+    np.testing.assert_array_equal(recs["train_soft"].actions, hard.actions)
+    np.testing.assert_array_equal(recs["train_soft"].chunks, hard.chunks)
+    np.testing.assert_allclose(recs["naive"].actions, hard.actions, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(recs["naive"].chunks, hard.chunks, rtol=1e-4, atol=1e-4)
+    # The first chunk is the naive sampler's for every method ([X-2]): bitwise the same.
+    np.testing.assert_array_equal(recs["naive"].chunks[0], hard.chunks[0])
 
 
 def test_offset_zero_window_equals_hard():
