@@ -4,7 +4,12 @@ Many PyTorch stacks (LeRobot, openpi's PyTorch code) run flow time the other
 way: t' = 1 at noise, t' = 0 at data, x_t' = t' eps + (1 - t') A, and the network
 predicts u = eps - A. Then t' = 1 - t and u = -v ([V-1]), the Euler step is
 x <- x - u / T from t' = 1 down ([V-2]), and the blended per-token time is
-t~'_j = (1 - w_j) t' ([V-3]).
+t~'_j = (1 - w_j) t' ([V-3]):
+
+    >>> flipped_token_times([1.0, 0.5, 0.0], 0.75).tolist()
+    [0.0, 0.375, 0.75]
+    >>> from_flipped_time([0.0, 0.375, 0.75]).tolist()  # the spec's w + (1 - w) t at t = 1 - 0.75
+    [1.0, 0.625, 0.25]
 """
 
 from __future__ import annotations

@@ -11,6 +11,10 @@ Per Euler step k with t = t_k and the base policy's scalar time:
 
 with c = +inf at t = 0, so lam = beta there. Guidance weights W come from
 weights.prefix_weights(H, d, H - s, schedule): "hard" uses zeros, "soft" exp ([G-1]).
+At t = 1/2, c = 1 and (t^2 + (1-t)^2) / (1-t)^2 = 2; at t = 0 the cap beta:
+
+    >>> guidance_weight(0.5), guidance_weight(0.0), guidance_weight(0.9, max_guidance=2.0)
+    (2.0, 5.0, 2.0)
 """
 
 from __future__ import annotations

@@ -3,6 +3,13 @@
 L = sum_j (1 - w_j) l_j / (sum_j (1 - w_j) + eta), with
 l_j = || v_j - (A_j - eps_j) ||^2 summed over the action dimension, eta = 1e-8.
 Clamped tokens (w_j = 1) have weight zero: their predictions do not enter L.
+With target A - eps = 1 and predictions 0, 1, 3, every l_j is 1, 0 or 4; the
+clamped first token drops out and L = (0 + 4) / 2 (up to eta):
+
+    >>> import numpy as np
+    >>> pred, acts, noise = np.array([[0.0], [1.0], [3.0]]), np.ones((3, 1)), np.zeros((3, 1))
+    >>> round(flow_matching_loss(pred, acts, noise, np.array([1.0, 0.0, 0.0])), 6)
+    2.0
 """
 
 from __future__ import annotations

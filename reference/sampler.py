@@ -6,7 +6,14 @@ Algorithm 1 of the paper, per solver step k = 0 .. T-1 with t_k = k / T:
     t~_j  = w_j + (1 - w_j) t_k              blended flow time    [S-3]
     x     = x~ + v(obs, x~, t~) / T                               [S-4]
 
-and the result is x after step T-1, without a final blend ([S-5]).
+and the result is x after step T-1, without a final blend ([S-5]). A token
+with w = 1 is replaced by the prior before every step; with a constant field
+v = 1 and T = 4 steps it ends at Y + 1/4, while a free token gains 1:
+
+    >>> import numpy as np
+    >>> one = lambda obs, x, t: np.ones_like(x)
+    >>> rtc_sample(one, np.zeros(1), np.zeros((2, 1)), np.full((2, 1), 5.0), np.array([1.0, 0.0]), 4)[:, 0].tolist()
+    [5.25, 1.0]
 """
 
 from __future__ import annotations
