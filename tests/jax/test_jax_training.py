@@ -79,7 +79,9 @@ def test_config_defaults_and_roundtrip():
     assert cfg.window == RW.SoftWindow()
     assert (cfg.learning_rate, cfg.weight_decay, cfg.grad_clip_norm, cfg.warmup_steps, cfg.decay_steps) == \
         (3e-4, 1e-2, 1.0, 0, None)
-    with pytest.raises(Exception):
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError, match="learning_rate"):
         cfg.learning_rate = 1.0  # frozen
     hash(cfg)
     again = TrainConfig.from_dict(json.loads(json.dumps(SOFT.to_dict())))
