@@ -12,7 +12,7 @@ from pathlib import Path
 
 from .._files import package_data_dir
 
-FORMAT_VERSION = "1.1"
+FORMAT_VERSION = "1.2"
 SPEC_VERSION = "0.1.0"
 
 

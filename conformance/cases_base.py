@@ -15,10 +15,33 @@ TOL_EXACT = {"abs": 0.0, "rel": 0.0}
 TOL_WEIGHTS = {"abs": 1e-5, "rel": 1e-5}
 TOL_ARITH = {"abs": 1e-5, "rel": 1e-5}
 TOL_TRACE = {"abs": 1e-4, "rel": 1e-4}
-TOL_COPY = {"abs": 1e-6, "rel": 1e-6}
+# Copied values (executed actions, the shifted prior): equal up to rounding to float32, the precision of
+# the lowest port ([CF-32]): round to nearest moves a real by at most 2^-24 of its magnitude.
+TOL_COPY = {"abs": 0.0, "rel": 2.0 ** -24}
 # How far two regenerations may differ ([CF-3]): float64 rounding of NumPy's
 # CPU-dependent transcendental kernels, far inside every tolerance above.
 REGEN_TOL = {"abs": 1e-12, "rel": 1e-12}
+
+# Functions whose output is a weight vector: an entry the rules give as exactly 0 or 1 is exact ([W-1],
+# [W-3], [CF-32]).
+WEIGHT_FUNCTIONS = ("prefix_weights", "weights", "hard_weights", "method_weights", "guidance_weights")
+
+
+def exact_entries(function: str, args: dict, expected: dict) -> dict:
+    """{output: flat indices} of the entries that the spec states exactly ([CF-32]): weights of 0 and 1
+    ([W-1], [W-3]), the flow time 1 of a token with weight 1 ([C-1], [S-3]), lam(0) = beta ([G-4])."""
+    out = {}
+    if function in WEIGHT_FUNCTIONS:
+        w = np.asarray(expected["weights"], dtype=np.float64)
+        out["weights"] = np.flatnonzero((w == 0.0) | (w == 1.0)).tolist()
+    elif function in ("token_times", "corrupt", "rtc_sample"):
+        ones = np.flatnonzero(np.asarray(args["weights"], dtype=np.float64) == 1.0).tolist()
+        out["trace/time" if function == "rtc_sample" else "times"] = ones
+    elif function == "guidance_weight" and args["t"] == 0:
+        out["lam"] = [0]
+    return {k: v for k, v in out.items() if v}
+
+
 class _Cases:
     """Collects cases of one vector file, checking ids are unique."""
 
@@ -30,8 +53,13 @@ class _Cases:
         if cid in self._ids:
             raise RuntimeError(f"duplicate case id {cid}")
         self._ids.add(cid)
+        tolerance = dict(tolerance)
+        if "error" not in expected:
+            exact = exact_entries(function, args, expected)
+            if exact:
+                tolerance["exact"] = exact
         self.cases.append({"id": cid, "function": function, "requirements": sorted(requirements),
-                           "tolerance": dict(tolerance), "args": _plain(args), "expected": _plain(expected)})
+                           "tolerance": tolerance, "args": _plain(args), "expected": _plain(expected)})
 
     def error(self, cid: str, function: str, requirements, args: dict):
         """A case whose call MUST raise ValueError ([N-7])."""

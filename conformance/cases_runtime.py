@@ -93,6 +93,8 @@ def gen_sampler() -> tuple[_Cases, dict]:
               {"method": m, "H": 8, "s": 4, "d": 2, "window": None}, {"weights": methods.method_weights(m, 8, 4, 2)})
     c.error("S.rtc_sample.reject.zero-steps", "rtc_sample", ["S-1", "N-7"],
             {"field": "h8a2", "obs": obs, "noise": noise, "prior": prior, "weights": np.zeros(8), "T": 0})
+    c.error("S.naive_sample.reject.steps-above-65536", "naive_sample", ["S-1", "N-12", "N-7"],
+            {"field": "h8a2", "obs": obs, "noise": noise, "T": 65537})
     c.error("S.method_weights.reject.d-above-overlap", "method_weights", ["S-6", "X-1", "N-7"],
             {"method": "train_hard", "H": 8, "s": 6, "d": 3, "window": None})
     # also bounds d by s for the inference methods, though guidance_weights(8, 2, 3) is defined ([G-1]).
@@ -155,6 +157,14 @@ def gen_guidance() -> tuple[_Cases, dict]:
     c.error("G.guidance_weights.reject.d-above-overlap", "guidance_weights", ["G-1", "N-7"],
             {"H": 8, "s": 4, "d": 5, "variant": "soft"})
     c.error("G.guidance_weight.reject.t-one", "guidance_weight", ["G-4", "N-7"], {"t": 1.0, "max_guidance": 5.0})
+    # [G-4], [N-12] Both sides of t in [0, 1) and of max_guidance > 0; lam(0) is the cap exactly.
+    for t, beta in ((0.0, 2.0 ** -20), (0.0, 0.25), (1.0 - 2.0 ** -10, 5.0), (0.5, 1.5)):
+        c.add(f"G.guidance_weight.edge.t{t}.beta{beta}", "guidance_weight", ["G-4", "N-12"], TOL_ARITH,
+              {"t": t, "max_guidance": beta}, {"lam": guidance.guidance_weight(t, beta)})
+    c.error("G.guidance_weight.reject.negative-t", "guidance_weight", ["G-4", "N-7"],
+            {"t": -1e-12, "max_guidance": 5.0})
+    c.error("G.guidance_weight.reject.zero-max-guidance", "guidance_weight", ["G-4", "N-12", "N-7"],
+            {"t": 0.5, "max_guidance": 0.0})
     return c, {"fields": _field_header()}
 
 
@@ -219,6 +229,13 @@ def gen_metrics() -> _Cases:
     c.error("M.boundary_jump.reject.float-chunk-index", "boundary_jump", ["M-3", "N-7"],
             {"actions": [[0.0], [1.0]], "chunk_index": [0.0, 1.5]})
     c.error("M.standard_error.reject.one-value", "standard_error", ["M-6", "N-7"], {"values": [1.0]})
+    # [M-1], [N-12] Both sides of the order range 1 <= k <= 16.
+    a = rng.standard_normal((17, 2))
+    c.add("M.difference_norm.order16", "difference_norm", ["M-1", "N-12"], TOL_ARITH, {"actions": a, "order": 16},
+          {"value": metrics.difference_norm(a, 16)})
+    for k in (0, 17):
+        c.error(f"M.difference_norm.reject.order{k}", "difference_norm", ["M-1", "N-12", "N-7"],
+                {"actions": rng.standard_normal((20, 2)), "order": k})
     vals = [0.1, 0.5, 0.9]
     for conf in (0.0, 1.0):
         c.error(f"M.bootstrap_interval.reject.confidence{conf}", "bootstrap_interval", ["M-5", "N-7"],

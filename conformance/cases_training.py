@@ -63,6 +63,28 @@ def gen_endpoints() -> _Cases:
             {"rule": {"kind": "hard", "lam": 2.0}, "d": 1})
     c.error("E.endpoint.reject.d-above-range", "endpoint", ["E-1", "N-12", "N-7"],
             {"rule": endpoints.hard().to_dict(), "d": 4097})
+    # [E-2] Both sides of the margin delta = 1/10000: lam * d just above an integer by 2e-4 (ceiling k + 1)
+    # or by 5e-5, 2e-5 or 6e-5 (ceiling k); a margin of 1e-3 or 1e-5 reads some of them differently, and
+    # float32 arithmetic agrees on all of them (lam * d <= 4).
+    for lam, d in ((3.0002, 1), (3.00005, 1), (1.5001, 2), (1.50001, 2), (0.0002, 1), (0.00005, 1), (1.00002, 5),
+                   (1.00005, 4), (0.50003, 2), (2.56, 100)):
+        rule = endpoints.delay_scaled(lam, 4096)
+        c.add(f"E.endpoint.margin.lam{lam}.d{d}", "endpoint", ["E-2"], TOL_EXACT, {"rule": rule.to_dict(), "d": d},
+              {"e": endpoints.endpoint(rule, d)})
+    # [E-1], [N-12] Both sides of the ranges: lam, h_max, L, h and d up to 4096.
+    c.add("E.endpoint.range.lam4096.d1", "endpoint", ["E-1", "E-2", "N-12"], TOL_EXACT,
+          {"rule": {"kind": "delay_scaled", "lam": 4096.0, "h_max": 4096}, "d": 1}, {"e": 4096})
+    c.add("E.endpoint.range.hard.d4096", "endpoint", ["E-1", "E-5", "N-12"], TOL_EXACT,
+          {"rule": {"kind": "hard"}, "d": 4096}, {"e": 4096})
+    c.add("E.endpoint.range.offset-L4096", "endpoint", ["E-1", "E-3", "N-12"], TOL_EXACT,
+          {"rule": {"kind": "offset", "length": 4096, "h_max": 4096}, "d": 1}, {"e": 4096})
+    for tag, rule in (("lam-above-4096", {"kind": "delay_scaled", "lam": 4096.5, "h_max": 5}),
+                      ("h_max-above-4096", {"kind": "delay_scaled", "lam": 2.0, "h_max": 4097}),
+                      ("L-above-4096", {"kind": "offset", "length": 4097, "h_max": 8}),
+                      ("h-above-4096", {"kind": "fixed", "length": 4097}),
+                      ("negative-lam", {"kind": "delay_scaled", "lam": -0.5, "h_max": 5}),
+                      ("float-h_max", {"kind": "delay_scaled", "lam": 2.0, "h_max": 5.0})):
+        c.error(f"E.endpoint.reject.{tag}", "endpoint", ["E-1", "N-12", "N-7"], {"rule": rule, "d": 1})
     # An integer-written lam is the same real ([CF-23]); offset and fixed rules give e(0) = 0 ([E-6]).
     c.add("E.endpoint.integer-lam", "endpoint", ["E-2"], TOL_EXACT,
           {"rule": {"kind": "delay_scaled", "lam": 2, "h_max": 5}, "d": 2}, {"e": 4})
@@ -134,6 +156,17 @@ def gen_weights() -> _Cases:
     zeros = dict(default, overflow="zeros")
     c.error("W.weights.reject.s-above-H-under-zeros", "weights", ["W-6", "N-7"],
             {"H": 8, "d": 2, "window": zeros, "s": 9})
+    # [W-6], [N-12] Both sides of the ranges: s = H under clip leaves no overlap (e* = d), s = 0 is an error;
+    # H = 4096 is the largest chunk.
+    for d in (0, 3):
+        c.add(f"W.weights.clip-s-equals-H.d{d}", "weights", ["W-6", "W-7"], TOL_WEIGHTS,
+              {"H": 8, "d": d, "window": default, "s": 8}, {"weights": weights.soft_weights(8, d, SoftWindow(), 8)})
+    c.error("W.weights.reject.s-zero-under-clip", "weights", ["W-6", "N-7"], {"H": 8, "d": 2, "window": default, "s": 0})
+    c.add("W.hard_weights.H4096.d4096", "hard_weights", ["W-8", "N-12"], TOL_WEIGHTS, {"H": 4096, "d": 4096},
+          {"weights": weights.hard_weights(4096, 4096)})
+    c.add("W.prefix_weights.H4096.d4093.e4096.exp.paper", "prefix_weights", ["W-1", "W-3", "W-5", "N-12"],
+          TOL_WEIGHTS, {"H": 4096, "d": 4093, "e": 4096, "schedule": "exp", "parametrization": "paper"},
+          {"weights": weights.prefix_weights(4096, 4093, 4096, "exp", "paper")})
     return c
 
 
@@ -168,6 +201,29 @@ def gen_delays() -> _Cases:
             {"probs": [0.5, 0.5], "d_min": 4096, "u": 0.3})
     c.error("D.delay_probs.reject.bad-decay-uniform", "delay_probs", ["D-2", "N-7"],
             {"dist": "uniform", "d_min": 0, "d_max": 2, "decay": -1.0})
+    # [D-3] The last CDF entry is exactly 1: the largest u below 1 (1 - 2^-53, and 1 - 1e-12) draws the last
+    # delay of tables whose float64 cumulative sum ends below 1; u = 1 and u < 0 are errors.
+    for dist, lo, hi, decay in (("uniform", 0, 6, 1.0), ("uniform", 2, 11, 1.0), ("exponential", 0, 4, 0.5)):
+        p = delays.delay_probs(dist, lo, hi, decay)
+        for name, u in (("1-2^-53", 1.0 - 2.0 ** -53), ("1-1e-12", 1.0 - 1e-12)):
+            c.add(f"D.sample_delay.last-entry.{dist}.{lo}-{hi}.u{name}", "sample_delay", ["D-3"], TOL_EXACT,
+                  {"probs": p, "d_min": lo, "u": u}, {"d": delays.sample_delay(p, lo, u)})
+    c.error("D.sample_delay.reject.negative-u", "sample_delay", ["D-3", "N-7"],
+            {"probs": [0.5, 0.5], "d_min": 0, "u": -1e-12})
+    # [D-3] Both sides of the 1e-6 rule on the table's sum: 1 - 8e-7 is a table, 1 - 1.5e-6 is not.
+    c.add("D.sample_delay.sum-within-1e-6", "sample_delay", ["D-3"], TOL_EXACT,
+          {"probs": [0.5, 0.4999992], "d_min": 3, "u": 0.75}, {"d": delays.sample_delay([0.5, 0.4999992], 3, 0.75)})
+    c.error("D.sample_delay.reject.sum-beyond-1e-6", "sample_delay", ["D-3", "N-7"],
+            {"probs": [0.5, 0.4999985], "d_min": 3, "u": 0.75})
+    # [D-2], [N-12] Both sides of decay <= 64 and of the delay range 4096 (d_min + n - 1 <= 4096).
+    c.error("D.delay_probs.reject.decay-above-64", "delay_probs", ["D-2", "N-12", "N-7"],
+            {"dist": "exponential", "d_min": 0, "d_max": 2, "decay": 64.5})
+    c.add("D.delay_probs.uniform.4096-4096", "delay_probs", ["D-1", "N-12"], TOL_WEIGHTS,
+          {"dist": "uniform", "d_min": 4096, "d_max": 4096, "decay": 1.0}, {"probs": [1.0]})
+    c.error("D.delay_probs.reject.d_max-above-4096", "delay_probs", ["D-1", "N-12", "N-7"],
+            {"dist": "uniform", "d_min": 4095, "d_max": 4097, "decay": 1.0})
+    c.add("D.sample_delay.range.d_min4095", "sample_delay", ["D-3", "N-12"], TOL_EXACT,
+          {"probs": [0.5, 0.5], "d_min": 4095, "u": 0.75}, {"d": 4096})
     return c
 
 

@@ -49,6 +49,11 @@ FILES = {
 }
 
 
+# Vector files written by hand from the spec's worked examples and closed forms, independent of this
+# generator ([CF-33]); the generator only copies and indexes them.
+HAND_FILES = ("worked_examples.json",)
+
+
 def _dumps(obj) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
 
@@ -86,6 +91,12 @@ def generate(out_dir=None) -> dict:
         sizes[f"{name}.json"] = len(text)
         index[f"{name}.json"] = {"chapter": FILES[name][0], "cases": text.count('"id":'),
                                  "sha256": hashlib.sha256(text.encode("ascii")).hexdigest()}
+    for name in HAND_FILES:  # written by hand ([CF-33]): copied as they are and indexed
+        raw = (vectors_dir() / name).read_bytes()
+        if (out / name).resolve() != (vectors_dir() / name).resolve():
+            (out / name).write_bytes(raw)
+        sizes[name] = len(raw)
+        index[name] = {"chapter": "HAND", "cases": raw.count(b'"id":'), "sha256": hashlib.sha256(raw).hexdigest()}
     idx = _dumps({"format_version": FORMAT_VERSION, "spec_version": SPEC_VERSION, "files": index}) + "\n"
     (out / "index.json").write_text(idx, encoding="ascii")
     sizes["index.json"] = len(idx)

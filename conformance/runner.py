@@ -78,8 +78,9 @@ def _decode(what: str, value) -> np.ndarray:
     return a
 
 
-def compare(what: str, got, want, tol: dict, integer: bool = False) -> float:
-    """Worst |got - want| / (abs + rel |want|) ([CF-5]); raise CaseFailure when above 1 (or not a number)."""
+def compare(what: str, got, want, tol: dict, integer: bool = False, exact=None) -> float:
+    """Worst |got - want| / (abs + rel |want|) ([CF-5]); raise CaseFailure when above 1 (or not a number).
+    ``exact``: flat indices of entries that must match exactly ([CF-32])."""
     if not isinstance(tol, dict) or not {"abs", "rel"} <= set(tol):
         raise ValueError(f"tol must be a dict with keys 'abs' and 'rel' ([CF-5]), got {tol!r}")
     w = np.asarray(want, dtype=np.float64)
@@ -102,6 +103,9 @@ def compare(what: str, got, want, tol: dict, integer: bool = False) -> float:
         raise CaseFailure(f"{what}: the expected value is not finite")
     err = np.abs(g - w)
     bound = np.zeros_like(err) if integer else tol["abs"] + tol["rel"] * np.abs(w)
+    if exact and not integer:
+        bound = np.array(bound, dtype=np.float64)
+        bound.reshape(-1)[np.asarray(exact, dtype=np.int64)] = 0.0
     ratio = np.where(err == 0, 0.0, np.divide(err, bound, out=np.full_like(err, np.inf), where=bound > 0))
     worst = float(ratio.max()) if ratio.size else 0.0
     if not worst <= 1.0:  # NaN fails too
@@ -124,7 +128,7 @@ def check_outputs(fn: Fn, fname: str, got: dict, expected: dict, tol: dict,
                   plain: bool = False) -> tuple[float, str]:
     """Worst ratio over every output ([CF-5], [CF-11]). With ``plain`` (values parsed from JSON without
     booleans) a value equal to the expected one as parsed has ratio 0 without going through NumPy."""
-    worst, note = 0.0, ""
+    worst, note, exact = 0.0, "", tol.get("exact", {})
     for k in fn.outputs:
         if k == "trace":
             if got.get("trace") is None:
@@ -139,10 +143,11 @@ def check_outputs(fn: Fn, fname: str, got: dict, expected: dict, tol: dict,
                     raise CaseFailure(f"{fname} trace step {i} lacks keys {missing}")
                 for k2 in sorted(ws):
                     if not (plain and st[k2] == ws[k2]):
-                        worst = max(worst, compare(f"trace step {i} {k2}", st[k2], ws[k2], tol))
+                        worst = max(worst, compare(f"trace step {i} {k2}", st[k2], ws[k2], tol,
+                                                   exact=exact.get(f"trace/{k2}")))
             continue
         if not (plain and got[k] == expected[k]):
-            worst = max(worst, compare(k, got[k], expected[k], tol, k in fn.int_out))
+            worst = max(worst, compare(k, got[k], expected[k], tol, k in fn.int_out, exact.get(k)))
     return worst, note
 
 

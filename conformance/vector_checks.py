@@ -90,6 +90,7 @@ def check_case(file: str, i: int, case, fields: dict) -> None:
                               f"got {v!r}")
     _check_guidance(where, case)
     arrays = _check_args(where, case, fn)
+    _check_exact(where, case, fn)
     exp = case["expected"]
     if "error" in exp:
         if exp != {"error": "ValueError"}:
@@ -99,6 +100,33 @@ def check_case(file: str, i: int, case, fields: dict) -> None:
     if missing:
         raise VectorError(f"{where}: 'expected' lacks outputs {missing} of {case['function']}")
     _check_expected(where, case, fn, arrays)
+
+
+def _check_exact(where: str, case: dict, fn) -> None:
+    """The tolerance's optional 'exact': {output or "trace/KEY": [flat index, ...]} ([CF-32]); the indices
+    must lie in the output (checked against the expected shape by _check_expected's arrays)."""
+    tol = case["tolerance"]
+    extra = sorted(set(tol) - {"abs", "rel", "exact"})
+    if extra:
+        raise VectorError(f"{where}: tolerance has unknown keys {extra}")
+    if "exact" not in tol:
+        return
+    ex = tol["exact"]
+    trace_keys = TRACE_KEYS.get(case["function"], ())
+    names = set(fn.outputs) - {"trace"} | {f"trace/{k}" for k in trace_keys}
+    if not isinstance(ex, dict) or not set(ex) <= names or not all(
+            isinstance(v, list) and v and all(isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in v)
+            for v in ex.values()):
+        raise VectorError(f"{where}: tolerance 'exact' must map outputs of {case['function']} "
+                          f"({sorted(names)}) to non-empty lists of indices >= 0")
+    if "error" in case["expected"]:
+        raise VectorError(f"{where}: an error case has no outputs to compare exactly")
+    for k, idx in ex.items():
+        want = case["expected"]["trace"][0].get(k[6:]) if k.startswith("trace/") and case["expected"].get("trace") \
+            else case["expected"].get(k)
+        size = int(np.size(np.asarray(want, dtype=object))) if want is not None else 0
+        if max(idx) >= size:
+            raise VectorError(f"{where}: tolerance 'exact' index {max(idx)} is outside {k!r} ({size} entries)")
 
 
 def _check_guidance(where: str, case: dict) -> None:

@@ -39,8 +39,9 @@ def _schedule(code, x):
         "zeros": lambda: jnp.zeros_like(x),
         "ones": lambda: jnp.ones_like(x),
         "linear": lambda: u,
-        # expm1(1) rather than e - 1 so that g(0) is exactly 1 ([W-3]).
-        "exp": lambda: u * jnp.expm1(u) / jnp.expm1(jnp.ones((), u.dtype)),
+        # expm1(1) rather than e - 1 so that g(0) is exactly 1 ([W-3]); XLA may turn the division into a
+        # product with the reciprocal (0.99999994 in float32 at u = 1), so u = 1 is pinned to 1.
+        "exp": lambda: jnp.where(u == 1.0, 1.0, u * jnp.expm1(u) / jnp.expm1(jnp.ones((), u.dtype))),
     }
     return v.select_by_code(code, [by_name[n] for n in SCHEDULES])
 
