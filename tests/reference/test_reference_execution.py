@@ -81,7 +81,10 @@ def test_closed_loop_observation_timing():
     assert [o for o, _, _ in seen] == [0.0, 4.0, 8.0, 12.0]
     assert seen[0][1] is None
     for c in range(1, 4):
-        np.testing.assert_array_equal(seen[c][1], X.shift_prior(out["chunks"][c - 1], s))
+        # written out: Y[j] = P[j + s] for j < H - s, 0 beyond.
+        want = np.zeros((H, 1))
+        want[: H - s] = out["chunks"][c - 1][s:]
+        np.testing.assert_array_equal(seen[c][1], want)
     ref = X.execute_chunks(out["chunks"], [0, 1, 2, 3], s)
     np.testing.assert_array_equal(out["actions"], ref["actions"])
 
@@ -174,7 +177,11 @@ def test_naming_and_batch_conventions():
     np.testing.assert_allclose(w[:d], 1.0)
     np.testing.assert_allclose(w[d:E], (E - np.arange(d, E)) / (E - d + 1))
     assert not w[E:].any()
-    np.testing.assert_array_equal(guidance_prefix_weights(H, s, d, "soft"), prefix_weights(H, d, E, "exp", "rtc"))
+    # The soft guidance weights on the same window, exp schedule written out: u expm1(u) / expm1(1), u = 1 - x.
+    u = 1.0 - (np.arange(d, E) - d + 1) / (E - d + 1)
+    soft = guidance_prefix_weights(H, s, d, "soft")
+    np.testing.assert_allclose(soft[d:E], u * np.expm1(u) / np.expm1(1.0), rtol=0, atol=1e-15)
+    assert np.all(soft[:d] == 1.0) and not soft[E:].any()
     # Reading the execute horizon s as the window end guides a different window.
     assert not np.array_equal(prefix_weights(H, d, s, "exp", "rtc"), guidance_prefix_weights(H, s, d, "soft"))
     from softrtc.reference.loss import batch_loss, flow_matching_loss

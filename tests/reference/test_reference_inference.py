@@ -1,5 +1,7 @@
 """Velocity field, samplers and guidance of the reference (spec/03-inference.md)."""
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -132,15 +134,17 @@ def test_zero_delay_rtc_equals_naive_bitwise(seed, T):
 
 
 def test_method_weights_table():
-    """S-6, G-1: methods map to the spec's weights."""
+    """S-6, G-1, W-7: methods map to the spec's weights, written out by hand (H = 8, s = 4)."""
     np.testing.assert_array_equal(Mth.method_weights("naive", 8, 4, 3), np.zeros(8))
-    np.testing.assert_array_equal(Mth.method_weights("train_hard", 8, 4, 3), W.hard_weights(8, 3))
-    np.testing.assert_array_equal(Mth.method_weights("train_soft", 8, 4, 2),
-                                  W.soft_weights(8, 2, W.SoftWindow(), 4))
-    np.testing.assert_array_equal(Mth.method_weights("inference_hard", 8, 4, 2), W.hard_weights(8, 2))
-    soft = Mth.method_weights("inference_soft", 8, 4, 2)
-    np.testing.assert_allclose(soft, W.prefix_weights(8, 2, 4, "exp"))
-    assert soft[4:].sum() == 0 and 0 < soft[2] < 1
+    np.testing.assert_array_equal(Mth.method_weights("train_hard", 8, 4, 3), [1, 1, 1, 0, 0, 0, 0, 0])
+    # The default window at d = 2: e = 4, rtc positions 1/3, 2/3, linear schedule (the README's table).
+    np.testing.assert_allclose(Mth.method_weights("train_soft", 8, 4, 2), [1, 1, 2 / 3, 1 / 3, 0, 0, 0, 0],
+                               rtol=0, atol=1e-15)
+    # [G-1]: the guided window ends at H - s = 4; zeros schedule for hard, exp for soft.
+    np.testing.assert_array_equal(Mth.method_weights("inference_hard", 8, 4, 2), [1, 1, 0, 0, 0, 0, 0, 0])
+    g = [u * math.expm1(u) / math.expm1(1.0) for u in (2 / 3, 1 / 3)]  # u = 1 - x at x = 1/3, 2/3
+    np.testing.assert_allclose(Mth.method_weights("inference_soft", 8, 4, 2), [1, 1, *g, 0, 0, 0, 0],
+                               rtol=0, atol=1e-15)
     f, obs, noise, prior = make()
     for method in Mth.METHODS:  # X-2: every method's first chunk is the naive sampler, d = 0
         assert np.array_equal(Mth.generate_chunk(method, f, obs, noise, None, 4, 0, 5),
