@@ -39,6 +39,16 @@ def gen_velocity() -> tuple[_Cases, dict]:
                   {"field": name, "obs": obs, "x": x, "t": t}, {"velocity": f(obs, x, t)})
             c.add(f"F.velocity_vjp.{name}.{i}", "velocity_vjp", ["F-2"], TOL_ARITH,
                   {"field": name, "obs": obs, "x": x, "t": t, "cotangent": cot}, {"vjp": f.vjp(obs, x, t, cot)})
+    # [CF-34] Flow times are checked: a per-token time outside [0, 1] is an error for the field and its VJP.
+    f = _fields()["h8a2"]
+    obs, x = rng.standard_normal(f.obs_dim), rng.standard_normal((8, 2))
+    for tag, bad in (("t-above-one", 1.5), ("t-below-zero", -0.25)):
+        t = np.full(8, 0.5)
+        t[3] = bad
+        c.error(f"F.velocity.reject.{tag}", "velocity", ["F-1", "CF-34", "N-7"], {"field": "h8a2", "obs": obs,
+                                                                                   "x": x, "t": t})
+        c.error(f"F.velocity_vjp.reject.{tag}", "velocity_vjp", ["F-2", "CF-34", "N-7"],
+                {"field": "h8a2", "obs": obs, "x": x, "t": t, "cotangent": x})
     return c, {"fields": _field_header()}
 
 
@@ -163,6 +173,11 @@ def gen_guidance() -> tuple[_Cases, dict]:
               {"t": t, "max_guidance": beta}, {"lam": guidance.guidance_weight(t, beta)})
     c.error("G.guidance_weight.reject.negative-t", "guidance_weight", ["G-4", "N-7"],
             {"t": -1e-12, "max_guidance": 5.0})
+    # [CF-34] t of guidance_weight is one scalar (reals may be written as integers); an array is an error.
+    c.add("G.guidance_weight.integer-args", "guidance_weight", ["G-4", "CF-34"], TOL_ARITH,
+          {"t": 0, "max_guidance": 5}, {"lam": 5.0})
+    c.error("G.guidance_weight.reject.array-t", "guidance_weight", ["G-4", "CF-34", "N-7"],
+            {"t": [0.25, 0.5], "max_guidance": 5.0})
     c.error("G.guidance_weight.reject.zero-max-guidance", "guidance_weight", ["G-4", "N-12", "N-7"],
             {"t": 0.5, "max_guidance": 0.0})
     return c, {"fields": _field_header()}
@@ -240,6 +255,14 @@ def gen_metrics() -> _Cases:
     for conf in (0.0, 1.0):
         c.error(f"M.bootstrap_interval.reject.confidence{conf}", "bootstrap_interval", ["M-5", "N-7"],
                 {"values": vals, "indices": [[0, 1, 2]], "confidence": conf})
+    # [CF-34] The index matrix has exactly len(values) columns (one resample of n values per row), B >= 1 rows.
+    c.add("M.bootstrap_interval.one-row", "bootstrap_interval", ["M-5", "CF-34"], TOL_ARITH,
+          {"values": vals, "indices": [[2, 2, 0]], "confidence": 0.9},
+          {"interval": list(metrics.bootstrap_interval_from_indices(vals, [[2, 2, 0]], 0.9))})
+    for tag, idx in (("columns-n-1", [[0, 1], [1, 2]]), ("columns-n+1", [[0, 1, 2, 0], [1, 2, 0, 1]]),
+                     ("index-n", [[0, 1, 3]])):
+        c.error(f"M.bootstrap_interval.reject.{tag}", "bootstrap_interval", ["M-5", "CF-34", "N-7"],
+                {"values": vals, "indices": idx, "confidence": 0.9})
     return c
 
 
@@ -252,4 +275,7 @@ def gen_conventions() -> _Cases:
                 # Stored in spec time; a flipped adapter receives t' and returns t~' = (1 - w) t' ([V-3]).
                 c.add(f"V.token_times.H{H}.{wname}.t{t}", "token_times", ["V-1", "V-3", "C-1", "S-3"], TOL_ARITH,
                       {"weights": w, "t": t}, {"times": 1.0 - conventions.flipped_token_times(w, tf)})
+    # [CF-34] token_times takes one scalar flow time t (the example's tau); per-token times are its output.
+    c.error("V.token_times.reject.array-t", "token_times", ["C-1", "CF-34", "N-7"],
+            {"weights": [0.0, 0.5], "t": [0.2, 0.4]})
     return c

@@ -162,6 +162,22 @@ def gen_weights() -> _Cases:
         c.add(f"W.weights.clip-s-equals-H.d{d}", "weights", ["W-6", "W-7"], TOL_WEIGHTS,
               {"H": 8, "d": d, "window": default, "s": 8}, {"weights": weights.soft_weights(8, d, SoftWindow(), 8)})
     c.error("W.weights.reject.s-zero-under-clip", "weights", ["W-6", "N-7"], {"H": 8, "d": 2, "window": default, "s": 0})
+    # [CF-34] Readings of the window argument: absent keys take the defaults of [W-7] (at d = 3, s = 4 the
+    # default clip differs from zeros, and a rule-only window equals the default one); the rule is required,
+    # an unknown key (a misspelt "schedule") and window None are errors; s is checked under zeros too.
+    rule_only = {"rule": endpoints.delay_scaled(2.0, 5).to_dict()}
+    c.add("W.weights.window-defaults.rule-only.d3", "weights", ["W-7", "CF-34"], TOL_WEIGHTS,
+          {"H": 8, "d": 3, "window": rule_only, "s": 4}, {"weights": weights.soft_weights(8, 3, SoftWindow(), 4)})
+    c.add("W.weights.window-defaults.zeros-only.d3", "weights", ["W-6", "W-7", "CF-34"], TOL_WEIGHTS,
+          {"H": 8, "d": 3, "window": dict(rule_only, overflow="zeros"), "s": None},
+          {"weights": weights.soft_weights(8, 3, SoftWindow(overflow="zeros"))})
+    c.error("W.weights.reject.window-unknown-key", "weights", ["W-7", "CF-34", "N-7"],
+            {"H": 8, "d": 2, "window": dict(rule_only, shedule="exp"), "s": 4})
+    c.error("W.weights.reject.window-none", "weights", ["W-7", "CF-34", "N-7"], {"H": 8, "d": 2, "window": None, "s": 4})
+    c.error("W.weights.reject.window-without-rule", "weights", ["W-7", "CF-34", "N-7"],
+            {"H": 8, "d": 2, "window": {"schedule": "linear"}, "s": 4})
+    c.error("W.weights.reject.s-zero-under-zeros", "weights", ["W-6", "CF-34", "N-7"],
+            {"H": 8, "d": 2, "window": zeros, "s": 0})
     c.add("W.hard_weights.H4096.d4096", "hard_weights", ["W-8", "N-12"], TOL_WEIGHTS, {"H": 4096, "d": 4096},
           {"weights": weights.hard_weights(4096, 4096)})
     c.add("W.prefix_weights.H4096.d4093.e4096.exp.paper", "prefix_weights", ["W-1", "W-3", "W-5", "N-12"],
@@ -224,6 +240,16 @@ def gen_delays() -> _Cases:
             {"dist": "uniform", "d_min": 4095, "d_max": 4097, "decay": 1.0})
     c.add("D.sample_delay.range.d_min4095", "sample_delay", ["D-3", "N-12"], TOL_EXACT,
           {"probs": [0.5, 0.5], "d_min": 4095, "u": 0.75}, {"d": 4096})
+    # [CF-34] The distributions are named "uniform" and "exponential", exactly; a real may be written as an
+    # integer (u = 0, decay = 1) ([CF-23]).
+    for name in ("geometric", "Uniform"):
+        c.error(f"D.delay_probs.reject.dist-{name}", "delay_probs", ["D-1", "CF-34", "N-7"],
+                {"dist": name, "d_min": 0, "d_max": 2, "decay": 1.0})
+    c.add("D.sample_delay.integer-u", "sample_delay", ["D-3", "CF-34"], TOL_EXACT,
+          {"probs": [0.5, 0.5], "d_min": 2, "u": 0}, {"d": 2})
+    c.add("D.delay_probs.integer-decay", "delay_probs", ["D-2", "CF-34"], TOL_WEIGHTS,
+          {"dist": "exponential", "d_min": 0, "d_max": 3, "decay": 1},
+          {"probs": delays.delay_probs("exponential", 0, 3, 1.0)})
     return c
 
 
@@ -253,6 +279,13 @@ def gen_corruption() -> _Cases:
             {"actions": [[0.0]], "noise": [[0.0]], "weights": [1.5], "tau": 0.5})
     c.error("C.corrupt.reject.shape-mismatch", "corrupt", ["C-2", "N-7"],
             {"actions": [[0.0], [1.0]], "noise": [[0.0]], "weights": [0.0, 0.0], "tau": 0.5})
+    # [CF-34] Weights passed in are checked for shape and [0, 1] only, not for [W-1]'s monotonicity; tau may
+    # be written as an integer.
+    acts, noise, w = rng.standard_normal((4, 2)), rng.standard_normal((4, 2)), np.array([0.0, 1.0, 0.5, 0.25])
+    for tau in (0.3, 0):
+        x, tj = corruption.corrupt(acts, noise, w, tau)
+        c.add(f"C.corrupt.non-monotonic-weights.tau{tau}", "corrupt", ["C-1", "C-2", "CF-34"], TOL_ARITH,
+              {"actions": acts, "noise": noise, "weights": w, "tau": tau}, {"x": x, "times": tj})
     return c
 
 
@@ -274,4 +307,9 @@ def gen_loss() -> _Cases:
               {"loss": loss.batch_loss(preds, acts_b, noise_b, wb)})
     c.error("L.loss.reject.weights-above-one", "loss", ["L-1", "N-7"],
             {"pred": [[0.0]], "actions": [[0.0]], "noise": [[0.0]], "weights": [2.0]})
+    acts, noise, pred = (rng.standard_normal((4, 2)) for _ in range(3))
+    w = np.array([0.5, 0.0, 1.0, 0.25])  # [CF-34] not monotonic: accepted
+    c.add("L.loss.non-monotonic-weights", "loss", ["L-2", "CF-34"], TOL_ARITH,
+          {"pred": pred, "actions": acts, "noise": noise, "weights": w},
+          {"loss": loss.flow_matching_loss(pred, acts, noise, w)})
     return c

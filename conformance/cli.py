@@ -6,6 +6,7 @@ Also runnable without the main CLI: ``python -m softrtc.conformance run --impl r
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from .._cli_util import group_help, leaf_progs
@@ -46,7 +47,12 @@ def main(argv=None) -> int:
     _fill(parser)
     leaf_progs(parser)
     args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except BrokenPipeError:
+        # The reader of stdout went away (`... generate --check | true`): stop quietly, as softrtc's main does.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
 
 
 if __name__ == "__main__":

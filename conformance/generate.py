@@ -171,6 +171,8 @@ def _check(prog: str, out_dir) -> int:
     want = Path(out_dir) if out_dir is not None else vectors_dir()
     if not want.is_dir():
         raise ValueError(f"--out must be an existing directory of vector files with --check, got {want}")
+    if not any(p.name != "index.json" for p in want.glob("*.json")):  # nothing to check against: a usage error
+        raise ValueError(f"--out {want} holds no vector files to check the regeneration against")
     with tempfile.TemporaryDirectory() as tmp:
         generate(tmp)
         try:
@@ -193,6 +195,8 @@ def run_from_args(args) -> int:
         if getattr(args, "check", False):
             return _check(prog, args.out)
         sizes = generate(args.out)
+    except BrokenPipeError:
+        raise  # the reader of stdout went away: the command line stops quietly ([N-11])
     except (ValueError, OSError) as exc:
         return command_error(prog, exc)
     for name, size in sizes.items():

@@ -458,7 +458,11 @@ def run_from_args(args) -> int:
                   start_timeout=getattr(args, "start_timeout", DEFAULT_START_TIMEOUT))
     except (AdapterError, VectorError) as exc:
         return command_error(prog, exc)
-    print(format_summary(res))
+    try:
+        print(format_summary(res), flush=True)
+        closed = None
+    except BrokenPipeError as exc:  # the reader went away: the reports are still written, then main stops quietly
+        closed = exc
     try:
         for out in (args.report, args.junit):
             if out:
@@ -470,6 +474,8 @@ def run_from_args(args) -> int:
             write_junit(res, args.junit)
     except OSError as exc:
         return command_error(prog, f"cannot write report: {exc}")
+    if closed is not None:
+        raise closed
     return 0 if res.ok else 1
 
 

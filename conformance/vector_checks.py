@@ -36,6 +36,8 @@ def as_array(what: str, value, dtype) -> np.ndarray:
         raise VectorError(f"{what} is not a rectangular array of numbers")
     try:
         a = np.asarray(value)
+        if a.dtype == object and any(isinstance(x, int) and abs(x) > MAX_ABS_INT for x in a.reshape(-1).tolist()):
+            raise ValueError("an integer beyond 2^53 in magnitude, [CF-28]")  # NumPy holds it as an object
         if a.dtype.kind not in "iuf":
             raise ValueError(f"elements of type {a.dtype}")
         if a.dtype.kind != "f" and np.any(np.abs(a) > MAX_ABS_INT):

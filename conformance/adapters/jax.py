@@ -142,6 +142,9 @@ class JaxAdapter:
         return _mod("guidance").guidance_prefix_weights(H, s, d, variant)
 
     def guidance_weight(self, t, max_guidance):
+        # The twin's lam(t) is vectorized over t ([N-10]); the interface function takes one flow time ([CF-34]).
+        if np.ndim(t) != 0:
+            raise ValueError(f"t must be one flow time (a scalar), got an array of shape {list(np.shape(t))}")
         return _mod("guidance").guidance_weight(t, max_guidance)
 
     def shift_prior(self, prev, s):

@@ -24,9 +24,14 @@ def rule_from_dict(rule) -> endpoints.EndpointRule:
 
 
 def window_from_dict(window) -> weights.SoftWindow:
-    """SoftWindow from its dict form {rule, schedule, parametrization, overflow} ([W-7])."""
+    """SoftWindow from its dict form {rule, schedule, parametrization, overflow} ([W-7]): absent keys but the
+    rule take the defaults of [W-7], an unknown key is an error ([CF-34])."""
     if not isinstance(window, dict) or "rule" not in window:
         raise ValueError("window must be a dict with keys rule, schedule, parametrization, overflow")
+    extra = set(window) - {"rule", "schedule", "parametrization", "overflow"}
+    if extra:
+        raise ValueError(f"window has unknown keys {sorted(extra)}; allowed: rule, schedule, parametrization, "
+                         "overflow")
     return weights.SoftWindow(rule_from_dict(window["rule"]), window.get("schedule", "linear"),
                               window.get("parametrization", "rtc"), window.get("overflow", "clip"))
 

@@ -133,3 +133,59 @@ def test_malformed_guidance_is_a_vector_error(tmp_path):
         (tmp_path / "g.json").write_text(json.dumps({"format_version": "1.1", "fields": fields, "cases": [bad]}))
         with pytest.raises(runner.VectorError, match=needle):
             runner.load_vectors(tmp_path)
+
+
+def _rejects_partial_window(H, d, window, s):
+    if set(window) != {"rule", "schedule", "parametrization", "overflow"}:
+        raise ValueError("window must have all four keys")
+    return REF.weights(H, d, window, s)
+
+
+def _window_extra_keys_ignored(H, d, window, s):
+    return REF.weights(H, d, {k: v for k, v in window.items() if k != "shedule"}, s)
+
+
+def _monotonic_only(actions, noise, w, tau):
+    if np.any(np.diff(np.asarray(w)) > 0):
+        raise ValueError("weights must be non-increasing")
+    return REF.corrupt(actions, noise, w, tau)
+
+
+def _any_dist_name(dist, d_min, d_max, decay):
+    return REF.delay_probs(dist.lower() if dist.lower() in ("uniform", "exponential") else "uniform", d_min, d_max,
+                           decay)
+
+
+def _velocity_clips_times(field, obs, x, t):
+    return REF.velocity(field, obs, x, np.clip(t, 0.0, 1.0))
+
+
+def _token_times_per_token(w, t):
+    return np.asarray(w) + (1.0 - np.asarray(w)) * np.asarray(t)
+
+
+def _indices_any_columns(values, indices, confidence):
+    v, idx = np.asarray(values), np.asarray(indices)
+    if idx.ndim != 2 or idx.min() < 0 or idx.max() >= v.size or not 0 < confidence < 1:
+        raise ValueError("indices or confidence")
+    lo, hi = np.quantile(v[idx].mean(axis=1), [(1 - confidence) / 2, (1 + confidence) / 2])
+    return np.array([lo, hi])
+
+
+@pytest.mark.parametrize("function,impl", [
+    ("weights", _rejects_partial_window),
+    ("weights", _window_extra_keys_ignored),
+    ("corrupt", _monotonic_only),
+    ("delay_probs", _any_dist_name),
+    ("velocity", _velocity_clips_times),
+    ("token_times", _token_times_per_token),
+    ("bootstrap_interval", _indices_any_columns),
+])
+def test_other_readings_of_the_interface_fail(vector_files, function, impl):
+    """[CF-34] Each point of the interface a port could read another way has cases that tell the readings
+    apart: an implementation taking the other reading fails a CF-34 case, and the reference passes them all."""
+    res = runner.run(_Only(**{function: impl}), files=vector_files, only={function})
+    failed = [c for c in res.cases if c.status == "fail"]
+    assert failed and all("CF-34" in c.requirements for c in failed), [c.id for c in failed][:5]
+    ref = runner.run(REF, files=vector_files, only={function})
+    assert ref.ok and ref.by_requirement()["CF-34"]["status"] == "PASS"
