@@ -5,11 +5,12 @@ A test *counts* for the ids its docstring names when both hold ([N-14]):
 * it checks something: an ``assert``, a ``pytest.raises``, an ``assert_*``
   call (``np.testing.assert_allclose``, ...), or a call of a helper of its own
   module that does one of these;
-* its expectation is not the reference's own output: it does not run the
-  reference through the conformance runner (``run("reference", ...)``, a
+* its expectation is not the reference's own output: it does not run only
+  the reference through the conformance runner (``run("reference", ...)``, a
   ``Reference...`` adapter, ``--impl reference``), since the shipped vectors
   are what the reference generated, so such a run compares the reference
-  with itself.
+  with itself. A test that also runs a mutant, another implementation or a
+  hand-made adapter counts.
 
 Tests that check the JAX, PyTorch or another implementation against the
 vectors count: the code under test did not produce them.
@@ -70,17 +71,22 @@ def _names_reference(node: ast.AST) -> bool:
     return name in ("REF", "reference", "ref_adapter") or name.startswith("Reference")
 
 
-def _runs_reference_on_vectors(fn: ast.AST) -> bool:
-    """``fn`` runs the reference through the conformance runner, in Python or on the command line."""
+def _runner_runs(fn: ast.AST) -> tuple:
+    """(runs the reference, runs another implementation) through the conformance runner, in Python or on the
+    command line (``--impl NAME``)."""
+    ref = other = False
     for node in ast.walk(fn):
-        if isinstance(node, ast.Call) and _call_name(node) == "run" and node.args \
-                and _names_reference(node.args[0]):
-            return True
+        if isinstance(node, ast.Call) and _call_name(node) == "run" and node.args:
+            if _names_reference(node.args[0]):
+                ref = True
+            else:
+                other = True
         if isinstance(node, (ast.List, ast.Tuple)):
             words = [e.value for e in node.elts if isinstance(e, ast.Constant)]
-            if any(a == "--impl" and b == "reference" for a, b in zip(words, words[1:])):
-                return True
-    return False
+            for a, b in zip(words, words[1:]):
+                if a == "--impl":
+                    ref, other = ref or b == "reference", other or b != "reference"
+    return ref, other
 
 
 def classify(source: str) -> dict:
@@ -92,14 +98,16 @@ def classify(source: str) -> dict:
     def called(fn):
         return {_call_name(c) for c in ast.walk(fn) if isinstance(c, ast.Call)} & set(funcs)
 
-    # Helpers of the module that check, and those that run the reference on the vectors (to a fixed point).
+    # Helpers of the module that check, that run the reference and that run another implementation through the
+    # runner (to a fixed point).
     checks = {n for n, f in funcs.items() if _own_checks(f)}
-    selfref = {n for n, f in funcs.items() if _runs_reference_on_vectors(f)}
+    runs_ref = {n for n, f in funcs.items() if _runner_runs(f)[0]}
+    runs_other = {n for n, f in funcs.items() if _runner_runs(f)[1]}
     changed = True
     while changed:
         changed = False
         for n, f in funcs.items():
-            for target in (checks, selfref):
+            for target in (checks, runs_ref, runs_other):
                 if n not in target and called(f) & target:
                     target.add(n)
                     changed = True
@@ -111,9 +119,13 @@ def classify(source: str) -> dict:
                       if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef)) and f.name.startswith("test")]
     for name, f in tests:
         own = name.split(".")[-1]
-        out[name] = (ast.get_docstring(f) or "",
-                     own in checks or _own_checks(f) or bool(called(f) & checks),
-                     own in selfref or _runs_reference_on_vectors(f) or bool(called(f) & selfref))
+        ref, other = _runner_runs(f)
+        ref = own in runs_ref or ref or bool(called(f) & runs_ref)
+        other = own in runs_other or other or bool(called(f) & runs_other)
+        # Running a mutant, another implementation or a hand-made adapter as well is a check the reference's
+        # own output cannot pass by construction.
+        out[name] = (ast.get_docstring(f) or "", own in checks or _own_checks(f) or bool(called(f) & checks),
+                     ref and not other)
     return out
 
 
@@ -134,8 +146,9 @@ def _named(i: str, doc: str) -> bool:
 
 
 def test_the_coverage_rule_on_hand_made_tests():
-    """N-14: the rule above, on a module written for it: a test without a check, one that runs the reference on
-    the vectors (directly, through a helper, or on the command line) and one whose helper asserts."""
+    """N-14: the rule above, on a module written for it: a test without a check, one that runs only the reference
+    on the vectors (directly, through a helper, or on the command line), one that runs a mutant too, and one whose
+    helper asserts."""
     src = '''
 def _same(a, b):
     assert a == b
@@ -168,6 +181,11 @@ def test_jax_on_the_vectors(files):
     """W-6"""
     assert runner.run("jax", files=files).failed == 0
 
+def test_mutant_and_reference(files):
+    """W-10"""
+    assert not runner.run(Mutant(), files=files).ok
+    assert runner.run("reference", files=files).ok
+
 def test_by_hand():
     """W-7"""
     _same(weights.hard_weights(2, 1).tolist(), [1.0, 0.0])
@@ -186,7 +204,8 @@ class TestGroup:
     assert got == {"test_no_check": (False, False), "test_reference_on_its_vectors": (True, True),
                    "test_reference_adapter_on_its_vectors": (True, True), "test_through_a_helper": (True, True),
                    "test_command_line": (True, True), "test_jax_on_the_vectors": (True, False),
-                   "test_by_hand": (True, False), "test_raises": (True, False),
+                   "test_mutant_and_reference": (True, False), "test_by_hand": (True, False),
+                   "test_raises": (True, False),
                    "TestGroup.test_in_a_class": (True, False)}
 
 
