@@ -55,9 +55,11 @@ def sample_delay(probs, d_min: int, u):
         u = v.real_tensor("u", u, lo=0.0, hi=1.0)
         if not v.compiling() and bool((u >= 1.0).any()):
             raise ValueError("u must lie in [0, 1), got an entry equal to 1")
-        return d_min + (cdf.to(u.dtype) <= u[..., None]).sum(-1)
+        return d_min + (cdf[:-1].to(u.dtype) <= u[..., None]).sum(-1)
     u = v.real("u", u, 0.0, 1.0, hi_open=True)
-    return d_min + int((cdf <= u).sum())
+    # [D-3] The last entry is 1 and u < 1, so only the first n - 1 count: a u that rounds up to 1 in float32
+    # (1 - 1e-12) draws the last delay, never one past the table.
+    return d_min + int((cdf[:-1] <= u).sum())
 
 
 def check_generator(generator) -> torch.Generator:
