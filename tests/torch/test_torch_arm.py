@@ -14,6 +14,8 @@ jax = pytest.importorskip("jax")
 from softrtc.torch import arm  # noqa: E402
 from softrtc.torch.policy import FlowPolicy  # noqa: E402
 
+pytestmark = pytest.mark.slow  # pymunk episodes and policy training
+
 
 def _normalizer():
     A = arm._arm()

@@ -35,6 +35,7 @@ class ScriptedClock:
         return self.now
 
 
+@pytest.mark.slow
 def test_ratios_and_targets_from_a_scripted_clock(tmp_path):
     """[PT-8] Medians and ratios come from the clock the benchmark is given (no wall clock): with scripted
     durations, train-time samplers / naive = 2.2 / 2 = 1.10 (FAIL at 1.05), soft / hard step = 11.2 / 11 =
@@ -64,6 +65,7 @@ def test_ratios_and_targets_from_a_scripted_clock(tmp_path):
     assert "FAIL  train-time samplers / naive, batch 1" in table and "PASS  soft / hard training step" in table
 
 
+@pytest.mark.slow
 def test_bench_config_and_command_line_checks(tmp_path):
     """[PT-8], [N-7] BenchConfig rejects bad values naming them; the command exits 2 with one line for a bad
     option or an unreadable --table file, and prints the table of a result file with --table."""
