@@ -20,8 +20,11 @@ from .weights import check_weights
 def token_times(weights, tau: float) -> np.ndarray:
     """Per-token flow time tau_j = w_j + (1 - w_j) tau ([C-1])."""
     w = check_array("weights", weights, ndim=1, lo=0.0, hi=1.0)
-    tau = check_real("tau", tau, 0.0, 1.0)
-    return w + (1.0 - w) * tau
+    return _token_times(w, check_real("tau", tau, 0.0, 1.0))
+
+
+def _token_times(w: np.ndarray, tau: float) -> np.ndarray:
+    return w + (1.0 - w) * tau  # [C-1] tau_j = w_j + (1 - w_j) tau
 
 
 def corrupt(actions, noise, weights, tau: float) -> tuple[np.ndarray, np.ndarray]:
@@ -32,6 +35,5 @@ def corrupt(actions, noise, weights, tau: float) -> tuple[np.ndarray, np.ndarray
     a = check_array("actions", actions, ndim=2)
     n = check_array("noise", noise, shape=a.shape)
     w = check_weights("weights", weights, a.shape[0])
-    tj = token_times(w, tau)
-    x = tj[:, None] * a + (1.0 - tj[:, None]) * n
-    return x, tj
+    tj = _token_times(w, check_real("tau", tau, 0.0, 1.0))
+    return tj[:, None] * a + (1.0 - tj[:, None]) * n, tj  # [C-2] x_j = tau_j A_j + (1 - tau_j) eps_j

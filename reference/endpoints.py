@@ -105,15 +105,18 @@ def endpoint(rule: EndpointRule, d: int) -> int:
     """
     if not isinstance(rule, EndpointRule):
         raise ValueError(f"rule must be an EndpointRule, got {type(rule).__name__}")
-    d = check_int("d", d, 0, MAX_WINDOW)
+    return _endpoint(rule, check_int("d", d, 0, MAX_WINDOW))
+
+
+def _endpoint(rule: EndpointRule, d: int) -> int:
     if d == 0:
-        return 0
+        return 0  # [E-6] e(0) = 0
     if rule.kind == "delay_scaled":
-        # Fraction(float) is the float's exact value, so the product is exact; DELAY_SCALED_DELTA
-        # snaps a product that the decimal lam makes an integer (1.6 * 5) back onto it.
+        # [E-2] e(d) = min(ceil(lam d - delta), h_max). Fraction(float) is the float's exact value, so the
+        # product is exact; DELAY_SCALED_DELTA snaps a product the decimal lam makes an integer (1.6 * 5) back.
         return min(math.ceil(Fraction(rule.lam) * d - DELAY_SCALED_DELTA), rule.h_max)
     if rule.kind == "offset":
-        return min(d + rule.length, rule.h_max)
+        return min(d + rule.length, rule.h_max)  # [E-3] e(d) = min(d + L, h_max)
     if rule.kind == "fixed":
-        return rule.length
-    return d
+        return rule.length  # [E-4] e(d) = h
+    return d  # [E-5] e(d) = d

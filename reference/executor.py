@@ -53,9 +53,12 @@ def _delays(delays, C: int, H: int, s: int) -> list:
 def shift_prior(prev_chunk, s: int) -> np.ndarray:
     """Prior Y[j] = prev[j + s] for j < H - s, 0 for j >= H - s ([X-3])."""
     prev = check_array("prev_chunk", prev_chunk, ndim=2)
-    s = check_int("s", s, 1, prev.shape[0])
-    y = np.zeros_like(prev)
-    y[: prev.shape[0] - s] = prev[s:]
+    return _shift(prev, check_int("s", s, 1, prev.shape[0]))
+
+
+def _shift(prev: np.ndarray, s: int) -> np.ndarray:
+    y = np.zeros_like(prev)  # [X-3] Y[j] = 0 for j >= H - s
+    y[: prev.shape[0] - s] = prev[s:]  # [X-3] Y[j] = P[j + s] for j < H - s
     return y
 
 
@@ -63,8 +66,18 @@ def segment(prev_chunk, new_chunk, s: int, d: int) -> np.ndarray:
     """Actions executed in the s steps after a request with delay d ([X-4])."""
     prev = check_array("prev_chunk", prev_chunk, ndim=2)
     new = check_array("new_chunk", new_chunk, shape=prev.shape)
-    d = check_delay(prev.shape[0], s, d)
-    return np.concatenate([prev[s: s + d], new[d: s]], axis=0)
+    d = check_delay(prev.shape[0], s, d)  # checks s too
+    return _segment(prev, new, int(s), d)
+
+
+def _segment(prev: np.ndarray, new: np.ndarray, s: int, d: int) -> np.ndarray:
+    return np.concatenate([prev[s: s + d], new[d: s]], axis=0)  # [X-4] P[s .. s + d - 1], then new[d .. s - 1]
+
+
+def _sources(c: int, s: int, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """[X-4] (chunk, token) of each step of request c >= 1's segment: chunk c - 1's tokens s .. s + d - 1,
+    then chunk c's tokens d .. s - 1."""
+    return np.r_[np.full(d, c - 1), np.full(s - d, c)], np.r_[np.arange(s, s + d), np.arange(d, s)]
 
 
 def execute_chunks(chunks, delays, s: int) -> dict:
@@ -79,12 +92,13 @@ def execute_chunks(chunks, delays, s: int) -> dict:
         raise ValueError("chunks must hold at least one chunk, got 0")
     s = check_int("s", s, 1, H)
     ds = _delays(delays, C, H, s)
+    # [X-2] the first chunk executes its own tokens 0 .. s - 1.
     actions, src_c, src_j = [ch[0, :s]], [np.zeros(s, int)], [np.arange(s)]
     for c in range(1, C):
-        d = check_delay(H, s, ds[c])
-        actions.append(segment(ch[c - 1], ch[c], s, d))
-        src_c.append(np.r_[np.full(d, c - 1), np.full(s - d, c)])
-        src_j.append(np.r_[np.arange(s, s + d), np.arange(d, s)])
+        actions.append(_segment(ch[c - 1], ch[c], s, ds[c]))
+        sc, sj = _sources(c, s, ds[c])
+        src_c.append(sc)
+        src_j.append(sj)
     return {"actions": np.concatenate(actions), "chunk_index": np.concatenate(src_c).astype(int),
             "token_index": np.concatenate(src_j).astype(int)}
 
@@ -108,15 +122,15 @@ def closed_loop(generate, env_step, obs0, num_chunks: int, H: int, s: int, delay
     chunks, priors, request_obs, executed = [], [], [], []
     prev = None
     for c in range(C):
-        d = check_delay(H, s, ds[c])
-        prior = None if prev is None else shift_prior(prev, s)
+        d = ds[c]
+        prior = None if prev is None else _shift(prev, s)  # [X-3]
         request_obs.append(np.asarray(obs))
         new = check_array(f"chunk {c} returned by generate", generate(obs, prior, d, c), ndim=2)
         # Every chunk has the first one's A: checked here, so the error names generate, not segment's argument.
         want = f"[H={H}, A]" if prev is None else f"[H={H}, A={prev.shape[1]}]"
         if new.shape[0] != H or (prev is not None and new.shape[1] != prev.shape[1]):
             raise ValueError(f"generate must return chunks of shape {want}, got {list(new.shape)} for chunk {c}")
-        seg = new[:s] if prev is None else segment(prev, new, s, d)
+        seg = new[:s] if prev is None else _segment(prev, new, s, d)  # [X-2], [X-4]
         for a in seg:
             executed.append(a)
             obs = env_step(a)

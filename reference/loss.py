@@ -25,18 +25,23 @@ ETA = 1e-8
 def token_errors(pred, actions, noise) -> np.ndarray:
     """Per-token squared error l_j against the target A - eps ([L-1])."""
     p = check_array("pred", pred, ndim=2)
-    a = check_array("actions", actions, shape=p.shape)
-    n = check_array("noise", noise, shape=p.shape)
-    return np.sum((p - (a - n)) ** 2, axis=-1)
+    return _token_errors(p, check_array("actions", actions, shape=p.shape), check_array("noise", noise, shape=p.shape))
+
+
+def _token_errors(p: np.ndarray, a: np.ndarray, n: np.ndarray) -> np.ndarray:
+    return np.sum((p - (a - n)) ** 2, axis=-1)  # [L-1] l_j = || v_j - (A_j - eps_j) ||^2
+
+
+def _loss(l: np.ndarray, w: np.ndarray, eta: float) -> float:
+    m = 1.0 - w
+    return float(np.sum(m * l) / (np.sum(m) + eta))  # [L-2] L = sum (1 - w_j) l_j / (sum (1 - w_j) + eta)
 
 
 def flow_matching_loss(pred, actions, noise, weights, eta: float = ETA) -> float:
     """Loss of one chunk ([L-1], [L-2]): weighted mean of l_j with weights 1 - w_j."""
     l = token_errors(pred, actions, noise)
     w = check_weights("weights", weights, l.shape[0])
-    eta = check_real("eta", eta, 0.0, 1.0, lo_open=True)
-    m = 1.0 - w
-    return float(np.sum(m * l) / (np.sum(m) + eta))
+    return _loss(l, w, check_real("eta", eta, 0.0, 1.0, lo_open=True))
 
 
 def batch_loss(preds, actions, noise, weights, eta: float = ETA) -> float:
@@ -45,6 +50,5 @@ def batch_loss(preds, actions, noise, weights, eta: float = ETA) -> float:
     a = check_array("actions", actions, shape=p.shape)
     n = check_array("noise", noise, shape=p.shape)
     w = check_array("weights", weights, shape=p.shape[:2], lo=0.0, hi=1.0)
-    if p.shape[0] == 0:
-        raise ValueError("preds must have batch size >= 1, got 0")
-    return float(np.mean([flow_matching_loss(p[i], a[i], n[i], w[i], eta) for i in range(p.shape[0])]))
+    eta = check_real("eta", eta, 0.0, 1.0, lo_open=True)
+    return float(np.mean([_loss(_token_errors(p[i], a[i], n[i]), w[i], eta) for i in range(p.shape[0])]))  # [L-3]

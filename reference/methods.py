@@ -18,9 +18,9 @@ import numpy as np
 
 from ._validate import MAX_HORIZON, check_array, check_choice, check_int
 from .executor import check_delay
-from .guidance import guidance_prefix_weights, guided_sample
-from .sampler import naive_sample, rtc_sample
-from .weights import SoftWindow, check_window, hard_weights, soft_weights
+from .guidance import GUIDANCE_SCHEDULES, MAX_GUIDANCE, _guided_sample, check_guided_field
+from .sampler import MAX_STEPS, _naive_sample, _rtc_sample, field_dims
+from .weights import SoftWindow, _hard, _prefix, _soft, check_window
 
 METHODS = ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft")
 
@@ -36,15 +36,19 @@ def method_weights(method: str, H: int, s: int, d: int, window: SoftWindow | Non
     """
     check_choice("method", method, METHODS)
     d = check_delay(H, s, d)
-    if window is not None:
-        check_window(H, window)
+    if window is not None or method == "train_soft":
+        window = check_window(H, SoftWindow() if window is None else window)
+    return _method_weights(method, H, s, d, window)
+
+
+def _method_weights(method: str, H: int, s: int, d: int, window: SoftWindow | None) -> np.ndarray:
     if method == "naive":
-        return np.zeros(H)
-    if method.startswith("inference_"):
-        return guidance_prefix_weights(H, s, d, method.split("_", 1)[1])
+        return np.zeros(H)  # [S-6] naive: no weights
+    if method.startswith("inference_"):  # [S-6], [G-1] W: start d, end H - s
+        return _prefix(H, d, H - s, GUIDANCE_SCHEDULES[method.split("_", 1)[1]], "rtc")
     if method == "train_hard":
-        return hard_weights(H, d)
-    return soft_weights(H, d, window if window is not None else SoftWindow(), s)
+        return _hard(H, d)  # [S-6], [W-8]
+    return _soft(H, d, window, s)  # [S-6], [W-7]
 
 
 def generate_chunk(method: str, field, obs, noise, prior, s: int, d: int, num_steps: int,
@@ -64,10 +68,21 @@ def generate_chunk(method: str, field, obs, noise, prior, s: int, d: int, num_st
         check_array("prior", prior, shape=noise.shape)
     if prior is None:
         check_int("d", d, 0, 0)
-        return naive_sample(field, obs, noise, num_steps)
-    w = method_weights(method, H, s, d, window)
-    if method == "naive":
-        return naive_sample(field, obs, noise, num_steps)
+    else:
+        d = check_delay(H, s, d)
+    if prior is not None and method.startswith("inference_"):
+        check_guided_field(field)
+    elif not callable(field):
+        raise ValueError("field must be callable as field(obs, x, t) -> velocity [H, A]")
+    obs = check_array("obs", obs, ndim=1)
+    field_dims(field, obs, noise)
+    T = check_int("num_steps", num_steps, 1, MAX_STEPS)
+    if prior is None or method == "naive":
+        return _naive_sample(field, obs, noise, T, False)  # [X-2] first chunk; [S-6] naive
+    y = check_array("prior", prior, shape=noise.shape)
+    if method == "train_soft":
+        window = check_window(H, SoftWindow() if window is None else window)
+    w = _method_weights(method, H, s, d, window)
     if method.startswith("inference_"):
-        return guided_sample(field, obs, noise, prior, w, num_steps)
-    return rtc_sample(field, obs, noise, prior, w, num_steps)
+        return _guided_sample(field, obs, noise, y, w, T, MAX_GUIDANCE, False)  # [S-6] guided sampler
+    return _rtc_sample(field, obs, noise, y, w, T, False)  # [S-6] training-time sampler

@@ -84,6 +84,24 @@ def standard_error(values) -> float:
     return float(np.std(v, ddof=1) / np.sqrt(v.size))
 
 
+def defined_values(values) -> np.ndarray:
+    """The defined entries of a 1-D array of per-episode values, as float64 ([M-8]): NaN and inf are left out."""
+    v = real_array("values", values).astype(np.float64)
+    if v.ndim != 1:
+        raise ValueError(f"values must be a 1-D array, got shape {list(v.shape)}")
+    return v[np.isfinite(v)]
+
+
+def defined_mean(values) -> float:
+    """Mean of the defined values ([M-8]); NaN when none is defined.
+
+        >>> defined_mean([1.0, float("nan"), 3.0])
+        2.0
+    """
+    v = defined_values(values)
+    return float(v.mean()) if v.size else float("nan")
+
+
 def bootstrap_indices(num_values: int, num_resamples: int, seed: int) -> np.ndarray:
     """Resample index matrix [B, n] = default_rng(seed).integers(0, n, (B, n)) ([M-5])."""
     n = check_int("num_values", num_values, 1, MAX_VALUES)

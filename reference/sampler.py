@@ -23,25 +23,38 @@ import numpy as np
 from ._validate import check_array, check_bool, check_int, check_real, real_array
 from .weights import check_weights
 
+# [N-12] Upper bound of the Euler step count T.
+MAX_STEPS = 1 << 16
+
 
 def euler_times(num_steps: int) -> np.ndarray:
     """t_k = k / T for k = 0 .. T-1 ([S-1])."""
-    T = check_int("num_steps", num_steps, 1, 1 << 16)
-    return np.arange(T, dtype=np.float64) / T
+    return _euler_times(check_int("num_steps", num_steps, 1, MAX_STEPS))
+
+
+def _euler_times(T: int) -> np.ndarray:
+    return np.arange(T, dtype=np.float64) / T  # [S-1] t_k = k / T
 
 
 def blend(x, prior, weights) -> np.ndarray:
     """x~ = w Y + (1 - w) x, token-wise ([S-3]). A token with w = 1 equals Y exactly."""
     x = check_array("x", x, ndim=2)
     y = check_array("prior", prior, shape=x.shape)
-    w = check_weights("weights", weights, x.shape[0])[:, None]
-    return w * y + (1.0 - w) * x
+    return _blend(x, y, check_weights("weights", weights, x.shape[0]))
+
+
+def _blend(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    return w[:, None] * y + (1.0 - w[:, None]) * x  # [S-3] x~_j = w_j Y_j + (1 - w_j) x_j
 
 
 def blend_time(t: float, weights) -> np.ndarray:
     """t~_j = w_j + (1 - w_j) t ([S-3]); t a flow time in [0, 1]."""
     w = check_array("weights", weights, ndim=1, lo=0.0, hi=1.0)
-    return w + (1.0 - w) * check_real("t", t, 0.0, 1.0)
+    return _blend_time(check_real("t", t, 0.0, 1.0), w)
+
+
+def _blend_time(t: float, w: np.ndarray) -> np.ndarray:
+    return w + (1.0 - w) * t  # [S-3] t~_j = w_j + (1 - w_j) t
 
 
 def field_output(name: str, value, shape: tuple) -> np.ndarray:
@@ -92,12 +105,15 @@ def naive_sample(field, obs, noise, num_steps: int, return_trace: bool = False):
     """
     obs, x = _check_inputs(field, obs, noise)
     return_trace = check_bool("return_trace", return_trace)
+    return _naive_sample(field, obs, x, check_int("num_steps", num_steps, 1, MAX_STEPS), return_trace)
+
+
+def _naive_sample(field, obs, x, T: int, return_trace: bool):
     trace = []
-    T = check_int("num_steps", num_steps, 1, 1 << 16)
-    for t in euler_times(T):
+    for t in _euler_times(T):
         tv = np.full(x.shape[0], t)
         v = field_output("field", field(obs, x, tv), x.shape)
-        nxt = x + v / T
+        nxt = x + v / T  # [S-2] x <- x + v(obs, x, t_k 1) / T
         if return_trace:
             trace.append({"state": x, "time": tv, "velocity": v, "next_state": nxt})
         x = nxt
@@ -114,14 +130,16 @@ def rtc_sample(field, obs, noise, prior, weights, num_steps: int, return_trace: 
     return_trace = check_bool("return_trace", return_trace)
     y = check_array("prior", prior, shape=x.shape)
     w = check_weights("weights", weights, x.shape[0])
-    T = check_int("num_steps", num_steps, 1, 1 << 16)
+    return _rtc_sample(field, obs, x, y, w, check_int("num_steps", num_steps, 1, MAX_STEPS), return_trace)
+
+
+def _rtc_sample(field, obs, x, y, w, T: int, return_trace: bool):
     trace = []
-    for t in euler_times(T):
-        xb = w[:, None] * y + (1.0 - w[:, None]) * x
-        tb = w + (1.0 - w) * t
+    for t in _euler_times(T):
+        xb, tb = _blend(x, y, w), _blend_time(t, w)  # [S-3]
         v = field_output("field", field(obs, xb, tb), x.shape)
-        nxt = xb + v / T
+        nxt = xb + v / T  # [S-4] x <- x~ + v(obs, x~, t~) / T
         if return_trace:
             trace.append({"state": x, "blended_state": xb, "time": tb, "velocity": v, "next_state": nxt})
         x = nxt
-    return (x, trace) if return_trace else x
+    return (x, trace) if return_trace else x  # [S-5] no final blend

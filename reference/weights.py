@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._validate import MAX_HORIZON, check_array, check_choice, check_horizon, check_int
-from .endpoints import EndpointRule, delay_scaled, endpoint
+from .endpoints import EndpointRule, _endpoint, delay_scaled
 
 SCHEDULES = ("zeros", "ones", "linear", "exp")
 PARAMETRIZATIONS = ("rtc", "paper")
@@ -36,16 +36,16 @@ def schedule_value(schedule: str, x) -> np.ndarray:
     All are non-increasing in x, take values in [0, 1], and (except zeros) g(0) = 1.
     """
     check_choice("schedule", schedule, SCHEDULES)
-    x = check_array("x", x, lo=0.0, hi=1.0)
-    if schedule == "zeros":
-        return np.zeros_like(x)
-    if schedule == "ones":
-        return np.ones_like(x)
+    return _schedule(schedule, check_array("x", x, lo=0.0, hi=1.0))
+
+
+def _schedule(schedule: str, x: np.ndarray) -> np.ndarray:
     u = 1.0 - x
-    if schedule == "linear":
-        return u
-    # Dividing by expm1(1) rather than e - 1 makes g(0) exactly 1 in IEEE arithmetic.
-    return u * np.expm1(u) / np.expm1(1.0)
+    return {"zeros": lambda: np.zeros_like(x),  # [W-3] g = 0
+            "ones": lambda: np.ones_like(x),  # [W-3] g = 1
+            "linear": lambda: u,  # [W-3] g = 1 - x
+            # [W-3] g = u (e^u - 1) / (e - 1); expm1(1), not e - 1, makes g(0) exactly 1 in IEEE arithmetic.
+            "exp": lambda: u * np.expm1(u) / np.expm1(1.0)}[schedule]()
 
 
 def window_positions(d: int, e: int, parametrization: str = "rtc") -> np.ndarray:
@@ -56,11 +56,14 @@ def window_positions(d: int, e: int, parametrization: str = "rtc") -> np.ndarray
     """
     check_choice("parametrization", parametrization, PARAMETRIZATIONS)
     d = check_int("d", d, 0, MAX_HORIZON)
-    e = check_int("e", e, d, MAX_HORIZON)
+    return _positions(d, check_int("e", e, d, MAX_HORIZON), parametrization)
+
+
+def _positions(d: int, e: int, parametrization: str) -> np.ndarray:
     j = np.arange(d, e, dtype=np.float64)
     if parametrization == "rtc":
-        return (j - d + 1.0) / (e - d + 1.0)
-    return (j - d) / float(e - d) if e > d else j
+        return (j - d + 1.0) / (e - d + 1.0)  # [W-4]
+    return (j - d) / float(e - d) if e > d else j  # [W-5]
 
 
 def prefix_weights(H: int, d: int, e: int, schedule: str = "linear",
@@ -73,10 +76,15 @@ def prefix_weights(H: int, d: int, e: int, schedule: str = "linear",
     d = check_int("d", d, 0, H)
     e = check_int("e", e, d, H)
     check_choice("schedule", schedule, SCHEDULES)
-    w = np.zeros(H, dtype=np.float64)
-    w[:d] = 1.0
-    if e > d:  # an empty window has no positions to evaluate
-        w[d:e] = schedule_value(schedule, window_positions(d, e, parametrization))
+    check_choice("parametrization", parametrization, PARAMETRIZATIONS)
+    return _prefix(H, d, e, schedule, parametrization)
+
+
+def _prefix(H: int, d: int, e: int, schedule: str, parametrization: str) -> np.ndarray:
+    w = np.zeros(H, dtype=np.float64)  # [W-1] w_j = 0 on the free tail j >= e
+    w[:d] = 1.0  # [W-1] w_j = 1 on the committed prefix j < d
+    if e > d:  # [W-4] w_j = g(x_j) on the window d <= j < e (an empty window has no positions)
+        w[d:e] = _schedule(schedule, _positions(d, e, parametrization))
     return w
 
 
@@ -93,14 +101,17 @@ def effective_endpoint(H: int, d: int, e: int, s: int | None = None, overflow: s
     d = check_int("d", d, 0, H)
     e = check_int("e", e, 0, H)
     check_choice("overflow", overflow, OVERFLOWS)
-    e_star = max(e, d)
     if s is not None:
         s = check_int("s", s, 1, H)  # checked when given, even where overflow="zeros" leaves it unused
+    if overflow == "clip" and s is None:
+        raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
+    return _effective_endpoint(H, d, e, s, overflow)
+
+
+def _effective_endpoint(H: int, d: int, e: int, s: int | None, overflow: str) -> int:
     if overflow == "clip":
-        if s is None:
-            raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
-        e_star = max(d, min(e_star, H - s))
-    return e_star
+        return max(d, min(max(e, d), H - s))  # [W-6] e* = max(d, min(e, o)), o = H - s
+    return max(e, d)  # [W-2] e* = max(e, d)
 
 
 @dataclass(frozen=True)
@@ -153,16 +164,27 @@ def soft_weights(H: int, d: int, window: SoftWindow, s: int | None = None) -> np
     H = check_horizon(H)
     d = check_int("d", d, 0, H)
     window = check_window(H, window)
-    e = min(endpoint(window.rule, d), H) if window.rule.kind == "hard" else endpoint(window.rule, d)
-    e_star = effective_endpoint(H, d, e, s, window.overflow)
-    return prefix_weights(H, d, e_star, window.schedule, window.parametrization)
+    if s is not None:
+        s = check_int("s", s, 1, H)
+    if window.overflow == "clip" and s is None:
+        raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
+    return _soft(H, d, window, s)
+
+
+def _soft(H: int, d: int, window: SoftWindow, s: int | None) -> np.ndarray:
+    e = _endpoint(window.rule, d)  # [E-1] the rule's raw endpoint; e(d) = d <= H for "hard"
+    e_star = _effective_endpoint(H, d, e, s, window.overflow)  # [W-2], [W-6]
+    return _prefix(H, d, e_star, window.schedule, window.parametrization)  # [W-7]
 
 
 def hard_weights(H: int, d: int) -> np.ndarray:
     """Hard RTC weights 1[j < d] ([W-8])."""
     H = check_horizon(H)
-    d = check_int("d", d, 0, H)
-    return (np.arange(H) < d).astype(np.float64)
+    return _hard(H, check_int("d", d, 0, H))
+
+
+def _hard(H: int, d: int) -> np.ndarray:
+    return (np.arange(H) < d).astype(np.float64)  # [W-8] w_j = 1[j < d]
 
 
 def check_weights(name: str, w, H: int) -> np.ndarray:

@@ -40,6 +40,22 @@ def check_out_dir(name: str, value, files: tuple = ()) -> Path:
     return out
 
 
+def check_out_file(name: str, value, suffix: str) -> str:
+    """``value`` as the path of a file to write: a str or PathLike ending in ``suffix``, not a folder, in an
+    existing writable folder. Raises ValueError naming ``name``."""
+    if not isinstance(value, (str, os.PathLike)) or not isinstance(os.fspath(value), str) \
+            or not os.fspath(value).endswith(suffix):
+        raise ValueError(f"{name} must be a str or PathLike ending in {suffix!r}, got {value!r}")
+    parent = os.path.dirname(os.path.abspath(os.fspath(value)))
+    if not os.path.isdir(parent):
+        raise ValueError(f"{name}'s folder {parent!r} does not exist")
+    if os.path.isdir(value):
+        raise ValueError(f"{name} {os.fspath(value)!r} is a folder, expected a {suffix} file name")
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"{name}'s folder {parent!r} is not writable")
+    return os.fspath(value)
+
+
 def unwritable_reason(folder) -> str | None:
     """None when ``folder``, or its nearest existing ancestor (the rest is created), takes new files; else why not,
     as the end of a sentence that starts with the folder's name ("cannot be written: /x is a file").

@@ -16,7 +16,7 @@ from softrtc.reference._validate import check_choice
 
 from .env import ACTION_DIM
 from .features import FEATURE_DIM, Normalizer
-from .policies import ArmPolicy
+from .policies import ArmPolicy, check_parts
 from .policy_config import STUDY_METHODS, TRAIN_METHODS, ArmPolicyConfig
 
 __all__ = ["ARM_FORMAT", "CKPT_FILES", "save_arm_checkpoint", "load_arm_checkpoint", "default_checkpoint_dir",
@@ -38,14 +38,7 @@ def save_arm_checkpoint(path, model: FlowPolicy, normalizer: Normalizer, config:
     """
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path).endswith(".npz"):
         raise ValueError(f"path must be a str or PathLike ending in '.npz', got {path!r}")
-    if not isinstance(model, FlowPolicy):
-        raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
-    if not isinstance(normalizer, Normalizer):
-        raise ValueError(f"normalizer must be a Normalizer, got {type(normalizer).__name__}")
-    if not isinstance(config, ArmPolicyConfig):
-        raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
-    if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
-        raise ValueError("model must have the architecture of config (ArmPolicyConfig.policy_config)")
+    check_parts(model, normalizer, config)
     method = check_choice("method", method, TRAIN_METHODS)
     if meta is not None and not isinstance(meta, dict):
         raise ValueError(f"meta must be a dict or None, got {type(meta).__name__}")

@@ -12,23 +12,17 @@ import os
 
 import numpy as np
 
-from .env import (ACTION_DIM, NUM_JOINTS, NUM_OBJECTS, OBS_DIM, ArmConfig, ArmSortEnv, _check_env_config,
-                  _check_int, _is_real)
+from softrtc._files import check_out_file
+from softrtc.reference._validate import check_int
+
+from ._checks import check_number
+from .env import ACTION_DIM, NUM_JOINTS, NUM_OBJECTS, OBS_DIM, ArmConfig, ArmSortEnv, _check_env_config
 from .expert import ExpertConfig, ScriptedExpert
 
 __all__ = ["generate_demos", "rollout_noisy_episode", "load_demos"]
 
 # Largest seed a demo file can store (saved as int64, [A-16]).
 SEED_MAX = 2**63 - 1
-
-
-def _check_float(name: str, value, low: float, high: float) -> float:
-    if not _is_real(value):  # booleans, NaN/inf and integers too large for a float ([N-7])
-        raise ValueError(f"{name} must be a finite number in [{low}, {high}], got {value!r}")
-    v = float(value)
-    if v < low or v > high:
-        raise ValueError(f"{name} must be a finite number in [{low}, {high}], got {value!r}")
-    return v
 
 
 def rollout_noisy_episode(env: ArmSortEnv, expert: ScriptedExpert, env_seed, rng: np.random.Generator,
@@ -49,11 +43,11 @@ def rollout_noisy_episode(env: ArmSortEnv, expert: ScriptedExpert, env_seed, rng
         raise ValueError("expert must be a ScriptedExpert")
     if not isinstance(rng, np.random.Generator):
         raise ValueError("rng must be a numpy.random.Generator")
-    noise_std = _check_float("noise_std", noise_std, 0.0, 1.0)
-    perturb_prob = _check_float("perturb_prob", perturb_prob, 0.0, 1.0)
-    perturb_std = _check_float("perturb_std", perturb_std, 0.0, 2.0)
-    perturb_steps = _check_int("perturb_steps", perturb_steps, 1, 10_000)
-    env_seed = _check_int("env_seed", env_seed, 0, SEED_MAX)
+    noise_std = check_number("noise_std", noise_std, 0.0, 1.0)
+    perturb_prob = check_number("perturb_prob", perturb_prob, 0.0, 1.0)
+    perturb_std = check_number("perturb_std", perturb_std, 0.0, 2.0)
+    perturb_steps = check_int("perturb_steps", perturb_steps, 1, 10_000)
+    env_seed = check_int("env_seed", env_seed, 0, SEED_MAX)
     obs = env.reset(env_seed)
     obs_l, lab_l, exe_l = [], [], []
     offset = np.zeros(NUM_JOINTS)
@@ -96,22 +90,13 @@ def generate_demos(num_episodes, seed, noise_std, path, perturb_prob=0.005, pert
     function of the arguments. ``path`` must end in ``.npz``; its parent folder
     must exist. Returns a summary dict (episodes, steps, success rate).
     """
-    num_episodes = _check_int("num_episodes", num_episodes, 1, None)
-    seed = _check_int("seed", seed, 0, SEED_MAX)
-    noise_std = _check_float("noise_std", noise_std, 0.0, 1.0)
-    perturb_prob = _check_float("perturb_prob", perturb_prob, 0.0, 1.0)
-    perturb_std = _check_float("perturb_std", perturb_std, 0.0, 2.0)
-    perturb_steps = _check_int("perturb_steps", perturb_steps, 1, 10_000)
-    if not isinstance(path, (str, os.PathLike)) or not isinstance(os.fspath(path), str) \
-            or not os.fspath(path).endswith(".npz"):
-        raise ValueError(f"path must be a str or PathLike ending in '.npz', got {path!r}")
-    parent = os.path.dirname(os.path.abspath(os.fspath(path)))
-    if not os.path.isdir(parent):
-        raise ValueError(f"path's folder {parent!r} does not exist")
-    if os.path.isdir(path):
-        raise ValueError(f"path {os.fspath(path)!r} is a folder, expected a .npz file name")
-    if not os.access(parent, os.W_OK):
-        raise ValueError(f"path's folder {parent!r} is not writable")
+    num_episodes = check_int("num_episodes", num_episodes, 1, None)
+    seed = check_int("seed", seed, 0, SEED_MAX)
+    noise_std = check_number("noise_std", noise_std, 0.0, 1.0)
+    perturb_prob = check_number("perturb_prob", perturb_prob, 0.0, 1.0)
+    perturb_std = check_number("perturb_std", perturb_std, 0.0, 2.0)
+    perturb_steps = check_int("perturb_steps", perturb_steps, 1, 10_000)
+    check_out_file("path", path, ".npz")
     env_config = _check_env_config(env_config, "env_config")
     if expert_config is not None and not isinstance(expert_config, ExpertConfig):
         raise ValueError(f"expert_config must be an ExpertConfig or None, got {type(expert_config).__name__}")

@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pymunk
 
-from softrtc.reference._validate import real_array
+from softrtc.reference._validate import check_int, real_array
+
+from ._checks import is_real
 
 __all__ = [
     "ArmConfig",
@@ -113,24 +115,6 @@ class ArmConfig:
         return 1.0 / (self.control_hz * self.substeps)
 
 
-def _check_int(name: str, value, low: int, high: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be an integer in [{low}, {high if high is not None else 'inf'}], got {value!r}")
-    if value < low or (high is not None and value > high):
-        raise ValueError(f"{name} must be an integer in [{low}, {high if high is not None else 'inf'}], got {value!r}")
-    return int(value)
-
-
-def _is_real(x) -> bool:
-    """A finite real scalar (Python or NumPy; no booleans); huge integers that overflow a float are not."""
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
-        return False
-    try:
-        return math.isfinite(x)
-    except (OverflowError, TypeError, ValueError):
-        return False
-
-
 def _real_array(name: str, value, shape_desc: str) -> np.ndarray:
     """``value`` as a float64 array: integer/float dtype only ([N-7]); ragged, boolean, string and complex
     inputs raise ValueError naming ``name`` (no conversion). Shape and finiteness are the caller's checks."""
@@ -153,7 +137,7 @@ def _check_env_config(env_config, name: str = "env_config") -> "ArmConfig":
 def _reals(name: str, values, n: int, low: float | None = None, strict: bool = False) -> tuple:
     """``n`` finite real numbers (no booleans), each > low (strict) or >= low."""
     ok = isinstance(values, (tuple, list)) and len(values) == n and all(
-        _is_real(x) and (low is None or (x > low if strict else x >= low)) for x in values)
+        is_real(x) and (low is None or (x > low if strict else x >= low)) for x in values)
     if not ok:
         bound = "" if low is None else f" {'>' if strict else '>='} {low}"
         raise ValueError(f"config.{name} must be {n} finite numbers{bound}, got {values!r}")
@@ -173,9 +157,9 @@ def _validate_config(cfg: ArmConfig) -> None:
     """Every field of an :class:`ArmConfig` ([A-1]..[A-12], [N-7]); NaN, booleans and wrong lengths are errors."""
     if not isinstance(cfg, ArmConfig):
         raise ValueError(f"config must be an ArmConfig, got {type(cfg).__name__}")
-    _check_int("config.control_hz", cfg.control_hz, 1, 10_000)
-    _check_int("config.substeps", cfg.substeps, 1, 1_000)
-    _check_int("config.max_steps", cfg.max_steps, 1, None)
+    check_int("config.control_hz", cfg.control_hz, 1, 10_000)
+    check_int("config.substeps", cfg.substeps, 1, 1_000)
+    check_int("config.max_steps", cfg.max_steps, 1, None)
     for name in ("motor_gain", "motor_max_rate", "motor_max_force", "grasp_radius", "link_radius",
                  "object_friction", "box_wall_height", "box_wall_thickness", "table_half_width"):
         _real(name, getattr(cfg, name), 0.0, strict=True)
@@ -276,7 +260,7 @@ def inverse_kinematics(ee_xy, config: ArmConfig | None = None, tool_angle: float
     p = _real_array("ee_xy", ee_xy, "(2,)")  # booleans, strings and ragged lists are not coordinates
     if p.shape != (2,) or not np.all(np.isfinite(p)):
         raise ValueError(f"ee_xy must be a finite array of shape (2,), got {ee_xy!r}")
-    if not _is_real(tool_angle):
+    if not is_real(tool_angle):
         raise ValueError(f"tool_angle must be a finite real number (radians), got {tool_angle!r}")
     return _ik(p, cfg, float(tool_angle))
 
@@ -344,7 +328,7 @@ class ArmSortEnv:
     # ------------------------------------------------------------------ reset
     def reset(self, seed) -> np.ndarray:
         """Build a fresh scene with seeded object placement ([A-5], [A-6])."""
-        seed = _check_int("seed", seed, 0, None)
+        seed = check_int("seed", seed, 0, None)
         rng = np.random.default_rng(seed)
         space = pymunk.Space()
         space.gravity = (0.0, -9.81)

@@ -20,6 +20,7 @@ import numpy as np
 
 from softrtc.jax import executor as jexec
 from softrtc.reference import metrics as rmetrics
+from softrtc.reference._validate import check_int
 
 from .env import ACTION_DIM, ArmConfig, ArmSortEnv, NUM_OBJECTS, _check_env_config
 
@@ -69,22 +70,15 @@ class EpisodeRecord:
     events: list = dataclasses.field(default_factory=list)
 
 
-def _check_int(name, value, lo, hi=None) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < lo \
-            or (hi is not None and value > hi):
-        raise ValueError(f"{name} must be an integer in [{lo}, {hi if hi is not None else 'inf'}], got {value!r}")
-    return int(value)
-
-
 def _delay_fn(delays, max_delay: int):
     """A callable c -> d_c for requests c >= 1 from an int, a sequence or a callable ([X-1], [X-5])."""
     if callable(delays):
-        return lambda c: _check_int(f"delays({c})", delays(c), 0, max_delay)
+        return lambda c: check_int(f"delays({c})", delays(c), 0, max_delay)
     if isinstance(delays, (int, np.integer)) and not isinstance(delays, (bool, np.bool_)):
-        d = _check_int("delays", delays, 0, max_delay)
+        d = check_int("delays", delays, 0, max_delay)
         return lambda c: d
     try:
-        seq = [_check_int(f"delays[{i}]", x, 0, max_delay) for i, x in enumerate(delays)]
+        seq = [check_int(f"delays[{i}]", x, 0, max_delay) for i, x in enumerate(delays)]
     except TypeError:
         raise ValueError(f"delays must be an int, a sequence of ints or a callable, got {delays!r}") from None
     if not seq:
@@ -108,16 +102,16 @@ def run_simulated_episode(policy, env_seed: int, delays, key, *, max_steps: int 
     environment is done ([A-11]) or after ``max_steps`` steps; metrics are on
     the truncated sequence ([X-6]).
     """
-    H, s = _check_int("policy.H", getattr(policy, "H", None), 1), _check_int("policy.s", getattr(policy, "s", None), 1)
+    H, s = check_int("policy.H", getattr(policy, "H", None), 1), check_int("policy.s", getattr(policy, "s", None), 1)
     if s > H or not callable(getattr(policy, "generate", None)):
         raise ValueError("policy must provide H, s (1 <= s <= H) and generate(obs, prior, d, key)")
-    env_seed = _check_int("env_seed", env_seed, 0)
+    env_seed = check_int("env_seed", env_seed, 0)
     if not isinstance(key, jax.Array) or not jax.numpy.issubdtype(key.dtype, jax.dtypes.prng_key):
         raise ValueError("key must be a typed JAX PRNG key (jax.random.key(seed))")
     if key.shape != ():
         raise ValueError(f"key must be a single typed JAX PRNG key of shape (), got shape {tuple(key.shape)}")
     env = ArmSortEnv(_check_env_config(env_config, "env_config"))
-    limit = env.config.max_steps if max_steps is None else _check_int("max_steps", max_steps, 1, env.config.max_steps)
+    limit = env.config.max_steps if max_steps is None else check_int("max_steps", max_steps, 1, env.config.max_steps)
     dfn = _delay_fn(delays, min(s, H - s))
 
     obs = env.reset(env_seed)
@@ -132,12 +126,12 @@ def run_simulated_episode(policy, env_seed: int, delays, key, *, max_steps: int 
         sub = jax.random.fold_in(key, c)
         if prev is None:
             new = np.asarray(policy.generate(obs, None, 0, sub), np.float64)
-            src = [(0, j) for j in range(s)]
         else:
             prior = np.asarray(jexec.shift_prior(prev, s), np.float64)
             new = np.asarray(policy.generate(obs, prior, d, sub), np.float64)
-            # [X-4]: prev[s .. s + d - 1], then new[d .. s - 1].
-            src = [(c - 1, s + i) if i < d else (c, i) for i in range(s)]
+        # [X-4]: prev[s .. s + d - 1], then new[d .. s - 1] (d = 0 for the first chunk, [X-2]).
+        from_prev, token = jexec.segment_sources(H, s, d)
+        src = [(c - 1 if p else c, int(t)) for p, t in zip(from_prev, token)]
         if new.shape != (H, ACTION_DIM):
             raise ValueError(f"policy.generate must return a chunk of shape [{H}, {ACTION_DIM}], "
                              f"got {list(new.shape)}")
@@ -179,9 +173,9 @@ def episode_metrics(record: EpisodeRecord) -> dict:
     """
     if not isinstance(record, EpisodeRecord):
         raise ValueError(f"record must be an EpisodeRecord, got {type(record).__name__}")
-    steps = _check_int("record.steps", record.steps, 0)
-    _check_int("record.step_limit", record.step_limit, max(steps, 1))
-    _check_int("record.num_completed", record.num_completed, 0, NUM_OBJECTS)
+    steps = check_int("record.steps", record.steps, 0)
+    check_int("record.step_limit", record.step_limit, max(steps, 1))
+    check_int("record.num_completed", record.num_completed, 0, NUM_OBJECTS)
     dt = record.dt
     if isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating)) \
             or not np.isfinite(float(dt) if abs(dt) < 1e308 else np.inf) or dt <= 0:
@@ -189,7 +183,7 @@ def episode_metrics(record: EpisodeRecord) -> dict:
     if not isinstance(record.success, (bool, np.bool_)):
         raise ValueError(f"record.success must be a boolean, got {record.success!r}")
     if record.success:
-        _check_int("record.success_step (required when record.success)", record.success_step, 1, record.step_limit)
+        check_int("record.success_step (required when record.success)", record.success_step, 1, record.step_limit)
     acts = record.actions
     if not isinstance(acts, np.ndarray) or acts.dtype.kind not in "iuf" or acts.ndim != 2 \
             or acts.shape[1] != ACTION_DIM or acts.shape[0] != steps:

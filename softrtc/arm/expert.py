@@ -16,6 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from softrtc.reference._validate import check_int
+
+from ._checks import is_real
 from .env import (
     NUM_OBJECTS,
     OBJECT_TARGET_BOX,
@@ -24,8 +27,6 @@ from .env import (
     ArmConfig,
     ArmSortEnv,
     _check_env_config,
-    _check_int,
-    _is_real,
     _real_array,
     inverse_kinematics,
 )
@@ -48,7 +49,7 @@ class ExpertConfig:
         for name in ("carry_height", "lookahead", "align_tol", "lift_tol", "grasp_clearance", "drop_clearance"):
             value = getattr(self, name)
             # NumPy scalars are accepted like Python numbers (stored as float); booleans and huge integers are not.
-            if not _is_real(value) or value <= 0:
+            if not is_real(value) or value <= 0:
                 raise ValueError(f"{name} must be a finite number > 0 (metres), got {value!r}")
             object.__setattr__(self, name, float(value))
 
@@ -71,8 +72,8 @@ class ScriptedExpert:
 
     def slot_x(self, obj: int, box_x: float) -> float:
         """Release x of object ``obj`` (an integer in [0, 3]) in its box with centre ``box_x`` (finite)."""
-        obj = _check_int("obj", obj, 0, NUM_OBJECTS - 1)
-        if not _is_real(box_x):
+        obj = check_int("obj", obj, 0, NUM_OBJECTS - 1)
+        if not is_real(box_x):
             raise ValueError(f"box_x must be a finite real number (metres), got {box_x!r}")
         inner = self.env_config.box_inner_widths[OBJECT_TARGET_BOX[obj]]
         # Object 0/2 go to the left half, 1/3 to the right half.
@@ -149,7 +150,7 @@ def run_expert_episode(seed, env_config: ArmConfig | None = None,
 
     Returns ``success``, ``completed``, ``steps`` and ``success_step``.
     """
-    seed = _check_int("seed", seed, 0, None)
+    seed = check_int("seed", seed, 0, None)
     env_config = _check_env_config(env_config, "env_config")
     if expert_config is not None and not isinstance(expert_config, ExpertConfig):
         raise ValueError(f"expert_config must be an ExpertConfig or None, got {type(expert_config).__name__}")
@@ -168,8 +169,8 @@ def expert_success_rate(n=100, seed0=0, verbose=True) -> float:
 
     Prints the rate, mean completion time and wall time when ``verbose``.
     """
-    n = _check_int("n", n, 1, None)
-    seed0 = _check_int("seed0", seed0, 0, None)
+    n = check_int("n", n, 1, None)
+    seed0 = check_int("seed0", seed0, 0, None)
     start = time.perf_counter()  # reporting only; the simulation never reads a clock
     results = [run_expert_episode(seed0 + i) for i in range(n)]
     elapsed = time.perf_counter() - start

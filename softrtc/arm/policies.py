@@ -1,22 +1,19 @@
 """Arm policies: a flow policy with its normalizer and chunk generator ([A-19], [S-6]).
 
 Chunks leave the policy in physical units and inside the action ranges of
-[A-8] ([A-19]); inference uses ``softrtc.jax.methods`` ([S-6]). Training is
+[A-8] ([A-19]); inference is :class:`softrtc.jax.fast_chunks.FastChunks` ([S-6]). Training is
 in :mod:`softrtc.arm.training`, checkpoint files in
 :mod:`softrtc.arm.checkpoints`, the policy input in :mod:`softrtc.arm.features`.
 """
 
 from __future__ import annotations
 
-from functools import partial
-
-import flax.nnx as nnx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from softrtc.jax import methods as jmethods
-from softrtc.jax import sampler as jsampler
+from softrtc.jax.fast_chunks import FastChunks
 from softrtc.jax.policy import FlowPolicy
 from softrtc.jax.weights import SoftWindow
 from softrtc.reference._validate import check_choice, check_int
@@ -27,39 +24,25 @@ from .policy_config import ArmPolicyConfig, new_model
 
 __all__ = ["ArmPolicy", "untrained_policy"]
 
-# Module-level compiled generators: policies with the same architecture share compilations
-# (graphdef, H, s, T and the method are static; parameters, window parameters and d are traced).
-
-
-@partial(jax.jit, static_argnums=(0,))
-def _first_chunk(static, state, nm, obs, key):
-    # The first chunk is naive for every method ([X-2], [S-6]).
-    gd, H, s, T = static
-    m = nnx.merge(gd, state)
-    noise = jax.random.normal(key, (1, H, ACTION_DIM))
-    z = jsampler.naive_sample_conditioned(m, ((obs - nm[0]) / nm[1])[None], noise, T, unroll=False)
-    return z[0] * nm[3] + nm[2]
-
-
-@partial(jax.jit, static_argnums=(0, 1))
-def _later_chunk(static, method, state, window, nm, obs, prior, d, key):
-    gd, H, s, T = static
-    m = nnx.merge(gd, state)
-    noise = jax.random.normal(key, (1, H, ACTION_DIM))
-    y = ((prior - nm[2]) / nm[3])[None]
-    # Weights and time conditioning of delay d are computed inside the compiled call
-    # (a few small ops), so building a policy does no eager per-delay work.
-    z = jmethods.generate_chunk_conditioned(method, m, ((obs - nm[0]) / nm[1])[None], noise, y, s, d, T,
-                                            window, unroll=False)
-    return z[0] * nm[3] + nm[2]
-
-
 
 def _check_window(window) -> None:
     """``window`` is None or a JAX :class:`softrtc.jax.weights.SoftWindow` ([W-7]), checked before any compilation."""
     if window is not None and not isinstance(window, SoftWindow):
         raise ValueError(f"window must be a softrtc.jax.weights.SoftWindow or None (convert a reference window with "
                          f"softrtc.jax.weights.from_reference), got {type(window).__name__}")
+
+
+def check_parts(model, normalizer, config) -> None:
+    """The parts of one arm policy: a ``FlowPolicy`` of ``config``'s architecture, a ``Normalizer`` and an
+    ``ArmPolicyConfig`` ([A-17], [A-18])."""
+    if not isinstance(model, FlowPolicy):
+        raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
+    if not isinstance(normalizer, Normalizer):
+        raise ValueError(f"normalizer must be a Normalizer, got {type(normalizer).__name__}")
+    if not isinstance(config, ArmPolicyConfig):
+        raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
+    if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
+        raise ValueError("model must have the architecture of config (ArmPolicyConfig.policy_config)")
 
 
 class ArmPolicy:
@@ -76,12 +59,7 @@ class ArmPolicy:
     def __init__(self, model: FlowPolicy, normalizer: Normalizer, config: ArmPolicyConfig, method: str,
                  trained_as: str | None = None, meta: dict | None = None, env_config: ArmConfig | None = None,
                  window: SoftWindow | None = None):
-        if not isinstance(model, FlowPolicy):
-            raise ValueError(f"model must be a FlowPolicy, got {type(model).__name__}")
-        if not isinstance(normalizer, Normalizer):
-            raise ValueError(f"normalizer must be a Normalizer, got {type(normalizer).__name__}")
-        if not isinstance(config, ArmPolicyConfig):
-            raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
+        check_parts(model, normalizer, config)
         self.method = check_choice("method", method, jmethods.METHODS)
         _check_window(window)
         if trained_as is not None and not isinstance(trained_as, str):
@@ -90,24 +68,31 @@ class ArmPolicy:
             raise ValueError(f"meta must be a dict or None, got {type(meta).__name__}")
         self.trained_as = trained_as or method
         self.meta = dict(meta or {})
-        if model.config != config.policy_config() or model.obs_dim != FEATURE_DIM or model.action_dim != ACTION_DIM:
-            raise ValueError("model must have the architecture of config (ArmPolicyConfig.policy_config)")
         self.model, self.normalizer, self.config = model, normalizer, config
         self.train_config = None
         self.H, self.s, self.T = config.horizon, config.execute_horizon, config.num_steps
         self.low, self.high = action_bounds(env_config)
-        self._graphdef, self._state = nnx.split(model)
         # train_soft's window ([W-7]); default the paper's main setting.
         self.window = SoftWindow() if window is None else window
-        self._static = (self._graphdef, self.H, self.s, self.T)
-        self._nm = tuple(jnp.asarray(a, jnp.float32) for a in (normalizer.obs_mean, normalizer.obs_std,
-                                                              normalizer.act_mean, normalizer.act_std))
+        # float32 statistics: the network's inputs and outputs are float32.
+        self._nm = tuple(np.asarray(a, np.float32) for a in (normalizer.obs_mean, normalizer.obs_std,
+                                                            normalizer.act_mean, normalizer.act_std))
+        self._fast = None
 
-    def _obs(self, obs) -> jnp.ndarray:
+    @property
+    def chunks(self) -> FastChunks:
+        """The policy's :class:`~softrtc.jax.fast_chunks.FastChunks` ([S-6]), built on first use (the tables of
+        every delay depend on the parameters and the window only)."""
+        if self._fast is None:
+            self._fast = FastChunks(self.model, self.method, self.s, self.T, self.window)
+        return self._fast
+
+    def _obs(self, obs) -> np.ndarray:
+        """The normalized policy input ``[1, FEATURE_DIM]`` of one observation ([A-17], [A-18])."""
         o = _real_array("obs", obs)
         if o.shape != (OBS_DIM,) or not np.all(np.isfinite(o)):
             raise ValueError(f"obs must be a finite vector of shape [{OBS_DIM}], got shape {list(o.shape)}")
-        return jnp.asarray(policy_features(o), jnp.float32)
+        return ((policy_features(o).astype(np.float32) - self._nm[0]) / self._nm[1])[None]
 
     def generate(self, obs, prior, d, key) -> np.ndarray:
         """One chunk ``[H, 4]`` (float64, physical units, within [A-8]) for delay ``d`` ([S-6], [A-19])."""
@@ -118,15 +103,16 @@ class ArmPolicy:
             raise ValueError(f"key must be a single typed JAX PRNG key of shape (), got shape {tuple(key.shape)}")
         if prior is None:
             check_int("d", d, 0, 0)
-            z = _first_chunk(self._static, self._state, self._nm, o, key)
+            z = self.chunks.first(o, key)
         else:
             d = check_int("d", d, 0, self.config.max_delay)
             p = _real_array("prior", prior)
             if p.shape != (self.H, ACTION_DIM) or not np.all(np.isfinite(p)):
                 raise ValueError(f"prior must be a finite array of shape [{self.H}, {ACTION_DIM}], got {list(p.shape)}")
-            z = _later_chunk(self._static, self.method, self._state, self.window, self._nm, o, jnp.asarray(p, jnp.float32),
-                            jnp.int32(d), key)
-        return np.clip(np.asarray(z, np.float64), self.low, self.high)
+            y = (p.astype(np.float32) - self._nm[2]) / self._nm[3]
+            z = self.chunks.next(o, y[None], d, key)
+        z = np.asarray(z[0]) * self._nm[3] + self._nm[2]
+        return np.clip(z.astype(np.float64), self.low, self.high)
 
     def warmup(self) -> None:
         """Compile both generators once (so the first timed call is not a compilation)."""

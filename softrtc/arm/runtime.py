@@ -26,6 +26,7 @@ import numpy as np
 
 from softrtc.jax import executor as jexec
 
+from ._checks import check_number
 from .clock import WallClock
 from .env import ACTION_DIM, ArmConfig, ArmSortEnv, _check_env_config
 from .executor import EpisodeRecord
@@ -35,18 +36,6 @@ __all__ = ["RuntimeConfig", "run_realtime_episode", "predict_delay", "jitter_sum
 
 # Upper bound of an added latency ([R-8]): far beyond any deadline of [R-5] at a sensible control rate.
 MAX_ADDED_LATENCY_S = 10.0
-
-
-def _seconds(name: str, v, lo: float, hi: float) -> float:
-    """A finite real number of seconds in ``[lo, hi]`` (NumPy scalars included, booleans and strings not)."""
-    try:
-        ok = not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, float, np.integer, np.floating)) \
-            and math.isfinite(v) and lo <= v <= hi
-    except (OverflowError, TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {v!r}")
-    return float(v)
 
 
 def checked_chunk(chunk, H: int, low, high) -> tuple:
@@ -96,7 +85,7 @@ class RuntimeConfig:
     def __post_init__(self):
         # NumPy scalars are accepted like Python ones (and stored as Python numbers); booleans are not numbers.
         for name, lo, hi in (("added_latency_s", 0.0, MAX_ADDED_LATENCY_S), ("join_timeout_s", 0.0, 60.0)):
-            object.__setattr__(self, name, _seconds(name, getattr(self, name), lo, hi))
+            object.__setattr__(self, name, check_number(name, getattr(self, name), lo, hi))
         for name, lo, hi in (("latency_window", 1, 1000), ("max_hold_ticks", 1, 10**6)):
             v = getattr(self, name)
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
@@ -236,7 +225,7 @@ def run_realtime_episode(policy, env_seed: int, key, config: RuntimeConfig = Run
         # [R-8] the caller's per-request latency, checked here: a bad value is the caller's error, not a worker crash.
         if added_latency is None:
             return config.added_latency_s
-        return _seconds(f"added_latency({c})", added_latency(c), 0.0, MAX_ADDED_LATENCY_S)
+        return check_number(f"added_latency({c})", added_latency(c), 0.0, MAX_ADDED_LATENCY_S)
     worker.warm(H)
     worker.start()
 

@@ -11,15 +11,14 @@ with standard errors over trials ([M-6]).
 from __future__ import annotations
 
 import csv
-import math
 import os
 
 import jax
 import numpy as np
 
-from softrtc._files import check_out_dir
+from softrtc._files import check_out_dir, check_out_file
 from softrtc.reference._validate import check_int
-from softrtc.reference.metrics import standard_error
+from softrtc.reference.metrics import defined_mean, defined_values, standard_error
 
 from ._checks import check_number
 from .checkpoints import load_policies
@@ -39,13 +38,8 @@ _COLUMNS = ("Method", "Succ.", "Compl.", "Obj.", "Thr.", "D1", "D2", "D3", "Boun
 
 
 def _se(values) -> float:
-    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], np.float64)
+    v = defined_values(values)
     return standard_error(v) if v.size >= 2 else float("nan")
-
-
-def _mean(values) -> float:
-    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], np.float64)
-    return float(v.mean()) if v.size else float("nan")
 
 
 def summarize(per_trial: list[dict]) -> dict:
@@ -69,7 +63,7 @@ def summarize(per_trial: list[dict]) -> dict:
            "objects": sum(m["completed"] for m in per_trial), "objects_total": NUM_OBJECTS * n}
     for k in ("completion", "throughput", "D1", "D2", "D3", "boundary", "latency_ms", "hold_ticks"):
         vals = [float(m[k]) for m in per_trial]
-        row[k] = _mean(vals)
+        row[k] = defined_mean(vals)
         row[k + "_se"] = _se(vals)
     row["faults"] = sum(m["fault"] is not None for m in per_trial)
     return row
@@ -117,14 +111,7 @@ def plot_traces(records: dict, path) -> str:
     for m, rec in records.items():
         if not isinstance(rec, EpisodeRecord):
             raise ValueError(f"records[{m!r}] must be an EpisodeRecord, got {type(rec).__name__}")
-    if not isinstance(path, (str, os.PathLike)) or not isinstance(os.fspath(path), str) \
-            or not os.fspath(path).endswith(".png"):
-        raise ValueError(f"path must end in '.png', got {path!r}")
-    parent = os.path.dirname(os.path.abspath(os.fspath(path)))
-    if not os.path.isdir(parent):
-        raise ValueError(f"path's folder {parent!r} does not exist")
-    if os.path.isdir(path):
-        raise ValueError(f"path {os.fspath(path)!r} is a folder, expected a .png file name")
+    check_out_file("path", path, ".png")
     fig, axes = plt.subplots(len(records), 1, figsize=(9, 2.4 * len(records)), sharex=True, squeeze=False)
     for ax, (m, rec) in zip(axes[:, 0], records.items()):
         t = np.arange(rec.steps) * rec.dt
@@ -193,7 +180,7 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
             if i == 0:
                 first_records[m] = rec
             csv_rows.append({"method": m, "trial": i, "env_seed": seed0 + i, **met,
-                             "mean_realized_delay": _mean([x for x in rec.realized_delays[1:] if x >= 0])})
+                             "mean_realized_delay": defined_mean([x for x in rec.realized_delays[1:] if x >= 0])})
             if verbose:
                 print(f"  {METHOD_LABELS.get(m, m):15s} trial {i}: success={met['success']} "
                       f"parts={met['completed']}/4 t={met['duration_s']:.1f}s lat={met['latency_ms']:.1f}ms "

@@ -198,3 +198,49 @@ def select_by_code(code, branches):
     for i in range(len(values) - 2, -1, -1):
         out = jnp.where(code == i, values[i], out)
     return out
+
+
+# --------------------------------------------------------------------------- policy inputs ([P-15])
+# Shapes and dtypes are checked while tracing; values only of concrete arrays.
+
+
+def float_input(name: str, value, *, allow_int: bool = False) -> jax.Array:
+    """``value`` as a JAX array of a floating dtype (integer too with ``allow_int``, cast to float32) ([P-15])."""
+    if is_traced(value):
+        arr = value
+    else:
+        try:
+            arr = jnp.asarray(value)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{name} must be a real array, got {type(value).__name__}") from exc
+    dt = arr.dtype
+    ok = jnp.issubdtype(dt, jnp.floating) or (allow_int and jnp.issubdtype(dt, jnp.integer))
+    if dt == jnp.bool_ or not ok:
+        allowed = "a real (integer or floating)" if allow_int else "a floating"
+        raise ValueError(f"{name} must have {allowed} dtype, got {dt}")
+    if jnp.issubdtype(dt, jnp.integer):
+        arr = arr.astype(jnp.float32)
+    return arr
+
+
+def check_finite(name: str, arr) -> None:
+    """A concrete ``arr`` holds only finite values ([P-15]); a traced one is not inspected."""
+    # NumPy, not jnp: inside a jit trace even a concrete array would turn into a tracer.
+    if not is_traced(arr) and not np.all(np.isfinite(np.asarray(arr))):
+        raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
+
+
+def check_nonempty(name: str, arr) -> None:
+    """[N-12] ``arr`` has no empty axis; a shape check, free under jit."""
+    if 0 in tuple(arr.shape):
+        raise ValueError(f"{name} must have at least one entry along every axis, got shape {tuple(arr.shape)}")
+
+
+def check_unit_interval(name: str, arr) -> None:
+    """A concrete flow time ``arr`` lies in [0, 1] and is finite ([P-15])."""
+    if is_traced(arr):
+        return
+    check_finite(name, arr)
+    a = np.asarray(arr)
+    if a.size and (np.any(a < 0.0) or np.any(a > 1.0)):
+        raise ValueError(f"{name} must lie in [0, 1] (flow time, 0 = noise, 1 = data)")

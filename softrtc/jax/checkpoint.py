@@ -42,7 +42,8 @@ import numpy as np
 
 from softrtc._files import write_atomic
 
-from .policy import FlowPolicy, PolicyConfig, load_pure_dict, state_pure_dict
+from .params import load_pure_dict, state_pure_dict
+from .policy import FlowPolicy, PolicyConfig
 
 __all__ = ["FORMAT", "VERSION", "save_checkpoint", "load_checkpoint", "read_checkpoint", "checkpoint_checksum"]
 

@@ -88,11 +88,12 @@ def _run(args, run, fmt, **extra):
     Returns the result, or the exit status 2 when the options are invalid or
     the JSON cannot be written ([B-10]).
     """
-    from . import bench
+    from .bench_config import BenchConfig
+    from .bench_report import write_json
 
     prog = getattr(args, "_prog", "softrtc bench")
     try:
-        config = bench.BenchConfig(
+        config = BenchConfig(
             calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,
             seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, arch=args.arch, **extra)
     except ValueError as exc:
@@ -100,7 +101,7 @@ def _run(args, run, fmt, **extra):
     res = run(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
     print(fmt(res))
     try:
-        bench.write_json(res, args.out)
+        write_json(res, args.out)
     except OSError as exc:
         return command_error(prog, f"cannot write {args.out}: {exc}")
     print(f"wrote {args.out}")
@@ -110,9 +111,10 @@ def _run(args, run, fmt, **extra):
 def run_runtime(args) -> int:
     """Exit status: 0 done (timing targets only count with --strict), 1 paths disagree or strict failure,
     2 invalid options ([B-10])."""
-    from . import bench
+    from .bench import run_benchmark
+    from .bench_report import format_table
 
-    res = _run(args, bench.run_benchmark, bench.format_table, path=args.path, train_batch=args.train_batch,
+    res = _run(args, run_benchmark, format_table, path=args.path, train_batch=args.train_batch,
                train_calls=args.train_calls)
     if isinstance(res, int):
         return res
@@ -123,9 +125,9 @@ def run_runtime(args) -> int:
 
 def run_vjp(args) -> int:
     """Exit status: 0 done, 1 a variant's chunks disagree with the shipped ones, 2 invalid options ([B-12])."""
-    from . import bench
+    from .bench_vjp import format_vjp_table, run_vjp_ablation
 
-    res = _run(args, bench.run_vjp_ablation, bench.format_vjp_table, train_calls=0)
+    res = _run(args, run_vjp_ablation, format_vjp_table, train_calls=0)
     if isinstance(res, int):
         return res
     return 0 if all(a["ok"] for per_b in res["agreement"].values() for a in per_b.values()) else 1

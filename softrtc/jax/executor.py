@@ -71,18 +71,51 @@ def _shift(prev, s):
 
 
 def segment(prev_chunk, new_chunk, s: int, d) -> jax.Array:
-    """prev[s : s + d] then new[d : s], shape [..., s, A] ([X-4]); ``s`` static, ``d`` traced or concrete."""
+    """prev[s : s + d] then new[d : s], shape [..., s, A] ([X-4]); ``s`` static, ``d`` traced or concrete.
+
+    ``d`` is one delay, or one per chunk of a batch (shape ``prev_chunk.shape[:-2]``, e.g. per environment).
+    """
     prev = v.array("prev_chunk", prev_chunk)
     if prev.ndim < 2:
         raise ValueError(f"prev_chunk must have shape [..., H, A], got {list(prev.shape)}")
     new = v.array("new_chunk", new_chunk, shape=prev.shape)
     H = prev.shape[-2]
     s = v.check_int("s", s, 1, H)
-    d = v.int_value("d", d, 0, min(s, H - s))
-    i = jnp.arange(s)
+    if jnp.ndim(d) and prev.ndim > 2:  # one delay per chunk of the batch
+        d = v.int_array("d", d, shape=prev.shape[:-2], lo=0, hi=min(s, H - s))
+    else:
+        d = v.int_value("d", d, 0, min(s, H - s))
+    return _segment(prev, new, s, d)
+
+
+def _sources(s: int, d) -> tuple[jax.Array, jax.Array]:
+    """[X-4] the source of step i < s after a request with delay d: the previous chunk's token s + i when
+    i < d, else the new chunk's token i. Returns ``(from_prev [..., s], token [..., s])``; d may be batched."""
+    i = jnp.arange(s, dtype=jnp.int32)
+    from_prev = i < jnp.asarray(d)[..., None]
+    return from_prev, jnp.where(from_prev, s + i, i)
+
+
+def _segment(prev, new, s: int, d):
+    H = prev.shape[-2]
+    from_prev, _ = _sources(s, d)
     # Tokens s + i >= H only occur for i >= H - s >= d, where the new chunk is used.
-    from_prev = jnp.take(prev, jnp.minimum(s + i, H - 1), axis=-2)
-    return jnp.where((i < d)[:, None], from_prev, new[..., :s, :])
+    old = jnp.take(prev, jnp.minimum(s + jnp.arange(s), H - 1), axis=-2)
+    return jnp.where(from_prev[..., None], old, new[..., :s, :])
+
+
+def segment_sources(H: int, s: int, d) -> tuple[np.ndarray, np.ndarray]:
+    """Host-side sources of the ``s`` steps after a request with delay ``d`` ([X-4]).
+
+    Returns ``(from_prev, token)``, each of shape ``[s]``: step i executes the
+    previous chunk's token ``token[i]`` when ``from_prev[i]``, else the new
+    chunk's token ``token[i]``. For executors that step an environment one
+    action at a time.
+    """
+    d = check_delay(H, s, d)
+    s = int(s)
+    from_prev, token = _sources(s, np.int32(d))
+    return np.asarray(from_prev), np.asarray(token)
 
 
 def execute_chunks(chunks, delays, s: int) -> dict:
@@ -101,12 +134,11 @@ def execute_chunks(chunks, delays, s: int) -> dict:
     if not v.is_traced(delays):
         check_delays(H, s, delays)  # on the caller's integers, before any cast to int32
     ds = v.int_array("delays", delays, shape=(C,))
-    n = jnp.arange(C * s)
-    c, i = n // s, n % s
+    c = jnp.arange(C, dtype=jnp.int32)
     # The first chunk never takes from a previous one ([X-2]), whatever d_0 holds.
-    prev = (c >= 1) & (i < ds[c])
-    ci = jnp.where(prev, c - 1, c).astype(jnp.int32)
-    ti = jnp.where(prev, s + i, i).astype(jnp.int32)
+    from_prev, token = _sources(s, jnp.where(c >= 1, ds, 0))
+    ci = jnp.where(from_prev, c[:, None] - 1, c[:, None]).reshape(C * s)
+    ti = token.reshape(C * s)
     return {"actions": ch[ci, ti], "chunk_index": ci, "token_index": ti}
 
 
@@ -194,9 +226,9 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
     def request(carry, inp):
         state, obs, prev = carry
         c, d = inp
-        prior = shift_prior(prev, s)
+        prior = _shift(prev, s)
         new = _generated(generate, H, (obs, prior, d, c), A)
-        seg = segment(prev, new, s, d)
+        seg = _segment(prev, new, s, d)
         state2, obs2 = run_segment(state, seg)
         return (state2, obs2, new), (seg, new, prior, obs)
 

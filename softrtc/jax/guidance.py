@@ -38,8 +38,13 @@ def guidance_prefix_weights(H: int, s, d, variant: str) -> jax.Array:
     v.check_choice("variant", variant, tuple(GUIDANCE_SCHEDULES))
     s = v.int_value("s", s, 1, H)
     d = v.int_value("d", d, 0, H - int(s) if not v.is_traced(s) else H)
+    return _guidance_prefix(H, s, d, variant)
+
+
+def _guidance_prefix(H: int, s, d, variant: str) -> jax.Array:
+    """:func:`guidance_prefix_weights` of checked arguments (``s``, ``d`` int32)."""
     return _prefix_jit(H, d, H - s, jnp.int32(SCHEDULES.index(GUIDANCE_SCHEDULES[variant])),
-                       jnp.int32(PARAMETRIZATIONS.index("rtc")))
+                       jnp.int32(PARAMETRIZATIONS.index("rtc")))  # [G-1] W: start d, end H - s
 
 
 def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:

@@ -24,11 +24,11 @@ import jax.numpy as jnp
 from softrtc.reference import methods as _ref
 
 from . import _validate as v
-from .guidance import _check_guided_tokens, guidance_prefix_weights, guided_sample, guided_sample_conditioned
+from .guidance import _check_guided_tokens, _guidance_prefix, guided_sample, guided_sample_conditioned
 from .sampler import (naive_conditioning, naive_sample, naive_sample_conditioned,
                       rtc_sample, rtc_sample_conditioned, select_conditioning, conditioning_table,
                       check_batch, check_leading, check_tree, check_unroll, model_horizon, _check_model)
-from .weights import SoftWindow, check_window, hard_weights, soft_weights
+from .weights import SoftWindow, _hard, _soft_weights, check_window
 
 METHODS = _ref.METHODS
 
@@ -47,7 +47,8 @@ def _delay(H, s, d, B=None):
 
 
 def _check_request(method, noise, prior, s, d, window):
-    """Checks shared by the generate_chunk functions; returns (H, s, d checked against [X-1] or None).
+    """Checks shared by the generate_chunk functions; returns (H, s, d checked against [X-1] or None,
+    the window: a given one checked, train_soft's default for a later chunk, else None).
 
     Arguments a method ignores are checked all the same ([S-8]): the delay for
     every method, naive included (a delay the executor cannot run is an error,
@@ -65,18 +66,22 @@ def _check_request(method, noise, prior, s, d, window):
         if method == "naive":
             v.array("prior", prior, shape=jnp.shape(noise))
     if window is not None:
-        check_window(H, window)
-    return H, s, dd
+        window = check_window(H, window)
+    elif method == "train_soft" and prior is not None:
+        window = check_window(H, SoftWindow())
+    return H, s, dd, window
 
 
 def _one(method, H, s, d, window):
+    """[S-6] The weights of ``method`` for one delay; arguments checked by the caller (``d`` int32)."""
+    s = jnp.asarray(s, jnp.int32)
     if method == "naive":
-        return jnp.zeros((H,), jnp.float32)
+        return jnp.zeros((H,), jnp.float32)  # naive: no weights
     if method.startswith("inference_"):
-        return guidance_prefix_weights(H, s, d, method.split("_", 1)[1])
+        return _guidance_prefix(H, s, d, method.split("_", 1)[1])  # [G-1]
     if method == "train_hard":
-        return hard_weights(H, d)
-    return soft_weights(H, d, window, s)
+        return _hard(H, d)  # [W-8]
+    return _soft_weights(H, d, window, s)  # [W-7]
 
 
 def method_weights(method: str, H: int, s: int, d, window=None) -> jax.Array:
@@ -92,7 +97,12 @@ def method_weights(method: str, H: int, s: int, d, window=None) -> jax.Array:
     s = v.check_int("s", s, 1, H)
     if window is not None or method == "train_soft":
         window = check_window(H, SoftWindow() if window is None else window)
-    d = _delay(H, s, d)
+    return _weights(method, H, s, _delay(H, s, d), window)
+
+
+def _weights(method, H, s, d, window):
+    """:func:`method_weights` of checked arguments: ``d`` a checked int32 scalar or vector, ``window``
+    checked (resolved for train_soft)."""
     if d.ndim == 0:
         return _one(method, H, s, d, window)
     return jax.vmap(lambda di: _one(method, H, s, di, window))(d)
@@ -126,11 +136,11 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     prior [B, H, A], ``velocity_fn(obs, x, t [B, H])``). ``prior=None`` is the
     first chunk: naive sampler, d must be 0 ([X-2]).
     """
-    H, s, _ = _check_request(method, noise, prior, s, d, window)
+    H, s, dd, window = _check_request(method, noise, prior, s, d, window)
     unroll = check_unroll(unroll)
     if prior is None or method == "naive":
         return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
-    w = method_weights(method, H, s, d, window)
+    w = _weights(method, H, s, dd, window)
     if method.startswith("inference_"):
         return guided_sample(velocity_fn, obs, noise, prior, w, num_steps, unroll=unroll)
     return rtc_sample(velocity_fn, obs, noise, prior, w, num_steps, unroll=unroll)
@@ -259,7 +269,7 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     the weights of [G-1] can be nonzero ([G-7], needs
     ``model.apply_conditioned_split``); chunks agree within float32 rounding.
     """
-    H, s, dd = _check_request(method, noise, prior, s, d, window)
+    H, s, dd, window = _check_request(method, noise, prior, s, d, window)
     if not isinstance(restrict_guidance, bool):
         raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
     unroll = check_unroll(unroll)
@@ -269,7 +279,7 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     if prior is None or method == "naive":
         return naive_sample_conditioned(model, obs, noise, num_steps, cond=naive_cond, unroll=unroll)
     if tables is None:
-        w = method_weights(method, H, s, d, window)
+        w = _weights(method, H, s, dd, window)
         cond = None
     else:
         w = tables["weights"][dd]

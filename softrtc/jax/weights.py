@@ -233,17 +233,24 @@ def soft_weights(H: int, d, window=None, s=None) -> jax.Array:
     H = v.check_horizon(H)
     window = check_window(H, SoftWindow() if window is None else window)
     d = v.int_value("d", d, 0, H)
-    s = _check_s(H, window, s)
+    return _soft_weights(H, d, window, _check_s(H, window, s))
+
+
+def _soft_weights(H: int, d, window: SoftWindow, s) -> jax.Array:
+    """:func:`soft_weights` of checked arguments (``d``, ``s`` int32)."""
     kind, scode, pcode, ocode = (jnp.int32(c) for c in _codes(window))
     r = window.rule
-    return _soft_jit(H, d, kind, r.lam, r.h_max, r.length, scode, pcode, ocode, s)
+    return _soft_jit(H, d, kind, r.lam, r.h_max, r.length, scode, pcode, ocode, s)  # [W-7]
 
 
 def hard_weights(H: int, d) -> jax.Array:
     """Hard RTC weights 1[j < d] ([W-8]); ``d`` in [0, H] may be traced."""
     H = v.check_horizon(H)
-    d = v.int_value("d", d, 0, H)
-    return (jnp.arange(H) < d).astype(jnp.float32)
+    return _hard(H, v.int_value("d", d, 0, H))
+
+
+def _hard(H: int, d) -> jax.Array:
+    return (jnp.arange(H) < d).astype(jnp.float32)  # [W-8] w_j = 1[j < d]
 
 
 def weight_table(H: int, window=None, s=None) -> jax.Array:

@@ -35,7 +35,7 @@ from kinetix.environment.env_state import EnvParams, StaticEnvParams
 from kinetix.environment.spaces import ActionType, ObservationType
 from kinetix.util.saving import load_from_json_file
 
-from softrtc.reference._validate import real_array
+from softrtc.reference._validate import check_int, real_array
 
 from .limits import BATCH_MAX, NUM_ENVS_MAX, NUM_STEPS_MAX, REPEATS_MAX
 
@@ -76,18 +76,6 @@ ACTION_DIM = NUM_MOTOR_BINDINGS + NUM_THRUSTER_BINDINGS
 # ----------------------------------------------------------------------------
 # validation helpers ([K-12])
 # ----------------------------------------------------------------------------
-
-
-def _check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
-    # bool is an int subclass and floats like 2.0 are rejected on purpose (N-7).
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        rng = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
-        raise ValueError(f"{name} must be an integer {rng}, got {value!r}")
-    value = int(value)
-    if value < lo or (hi is not None and value > hi):
-        rng = f"in [{lo}, {hi}]" if hi is not None else f">= {lo}"
-        raise ValueError(f"{name} must be an integer {rng}, got {value}")
-    return value
 
 
 def _check_nonneg_float(name: str, value: Any) -> float:
@@ -309,8 +297,8 @@ class KinetixTask:
             raise ValueError(f"static_env_params must be a kinetix StaticEnvParams, got {type(self.static_env_params).__name__}")
         if self.level is None or not hasattr(self.level, "polygon"):
             raise ValueError(f"level must be a kinetix EnvState (from load_level), got {type(self.level).__name__}")
-        _check_int("obs_dim", self.obs_dim, 1)
-        _check_int("action_dim", self.action_dim, 1)
+        check_int("obs_dim", self.obs_dim, 1)
+        check_int("action_dim", self.action_dim, 1)
         object.__setattr__(self, "action_noise_std", _check_nonneg_float("action_noise_std", self.action_noise_std))
 
     def _state_template(self):
@@ -375,7 +363,7 @@ class KinetixTask:
     def reset_batch(self, key: jax.Array, n: int):
         """``n`` independent resets, ``obs`` of shape ``[n, obs_dim]`` [K-11]."""
         _check_key("key", key)
-        n = _check_int("n", n, 1, BATCH_MAX)
+        n = check_int("n", n, 1, BATCH_MAX)
         return jax.vmap(self.reset)(jax.random.split(key, n))
 
     def step_batch(self, key: jax.Array, state, action: jax.Array):
@@ -449,7 +437,7 @@ def random_actions(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
         raise ValueError(f"shape must be a tuple of integers >= 1, got {shape!r}")
     if not shape:
         raise ValueError("shape must be a non-empty tuple of integers >= 1, got ()")
-    shape = tuple(_check_int("shape entry", n, 1, BATCH_MAX) for n in shape)
+    shape = tuple(check_int("shape entry", n, 1, BATCH_MAX) for n in shape)
     if math.prod(shape) * ACTION_DIM > 2**31 - 1:
         raise ValueError(f"shape must have prod(shape) * {ACTION_DIM} <= 2^31 - 1 values, got {shape}")
     a = jax.random.uniform(key, (*shape, ACTION_DIM), minval=-1.0, maxval=1.0)
@@ -460,8 +448,8 @@ def make_random_rollout(task: KinetixTask, num_envs: int, num_steps: int):
     """Jittable ``rollout(key) -> summary`` stepping ``num_envs`` envs ``num_steps`` times [K-13]."""
     if not isinstance(task, KinetixTask):
         raise ValueError(f"task must be a KinetixTask (from make_env), got {type(task).__name__}")
-    num_envs = _check_int("num_envs", num_envs, 1, BATCH_MAX)
-    num_steps = _check_int("num_steps", num_steps, 1, NUM_STEPS_MAX)
+    num_envs = check_int("num_envs", num_envs, 1, BATCH_MAX)
+    num_steps = check_int("num_steps", num_steps, 1, NUM_STEPS_MAX)
 
     def rollout(key):
         key, rkey = jax.random.split(key)
@@ -497,10 +485,10 @@ def bench_bare_env(
     ``repeats`` times; ``env_steps_per_s`` uses the fastest run.
     """
     _check_level_name(level)
-    num_envs = _check_int("num_envs", num_envs, 1, NUM_ENVS_MAX)
-    num_steps = _check_int("num_steps", num_steps, 1, NUM_STEPS_MAX)
-    seed = _check_int("seed", seed, 0, 2**32 - 1)
-    repeats = _check_int("repeats", repeats, 1, REPEATS_MAX)
+    num_envs = check_int("num_envs", num_envs, 1, NUM_ENVS_MAX)
+    num_steps = check_int("num_steps", num_steps, 1, NUM_STEPS_MAX)
+    seed = check_int("seed", seed, 0, 2**32 - 1)
+    repeats = check_int("repeats", repeats, 1, REPEATS_MAX)
     task = make_env(level, levels_dir)
     key = jax.random.key(seed)
     t0 = time.perf_counter()

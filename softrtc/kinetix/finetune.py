@@ -24,7 +24,8 @@ import numpy as np
 from softrtc._files import check_out_dir
 from softrtc.jax import checkpoint as jckpt
 from softrtc.jax.delays import MAX_DELAY
-from softrtc.jax.policy import FlowPolicy, PolicyConfig, load_pure_dict
+from softrtc.jax.params import load_pure_dict
+from softrtc.jax.policy import FlowPolicy, PolicyConfig
 from softrtc.jax.training import TrainConfig, train
 from softrtc.reference import weights as ref_weights
 

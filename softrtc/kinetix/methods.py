@@ -143,16 +143,14 @@ def method_family(method: str) -> str:
 
 
 def rollout_weight_table(spec: MethodSpec, H: int, s: int) -> np.ndarray:
-    """Weights per delay for the rollout ([KE-3]): ``[D + 1, H]`` float32, D = min(s, H - s) + 1.
+    """Weights per delay for the rollout ([KE-3]): ``[D, H]`` float32, D = min(s, H - s) + 1.
 
     Row ``d`` is the method's weights for delay ``d`` ([S-6], [G-1], [W-7],
-    [W-8]; all zeros for ``naive``, [W-9]); the extra last row is all zeros
-    and generates the first chunk of every episode, which is the naive
-    sampler by [S-7] / [G-6] ([X-2]).
+    [W-8]; all zeros for ``naive``, [W-9]). The first chunk of every episode
+    uses no row: it is the naive sampler ([X-2]).
     """
     if not isinstance(spec, MethodSpec):
         raise ValueError(f"spec must be a MethodSpec, got {type(spec).__name__}")
     H = check_int("H", H, 1)
     s = check_int("s", s, 1, H)
-    table = np.asarray(jmethods.method_weight_table(spec.method, H, s, spec.window), np.float32)
-    return np.concatenate([table, np.zeros((1, H), np.float32)], axis=0)
+    return np.asarray(jmethods.method_weight_table(spec.method, H, s, spec.window), np.float32)

@@ -24,12 +24,6 @@ METRICS = ("return", "solved", "delta", "jerk")
 SCOPES = ("overall", "high")
 
 
-def _nanmean(x) -> float:
-    x = np.asarray(x, np.float64)
-    x = x[np.isfinite(x)]
-    return float(x.mean()) if x.size else float("nan")
-
-
 def _check_rows(rows: list) -> None:
     """Episode rows of :func:`evaluate` ([KE-8]): str method/level, int delay, real metric values."""
     need = ("method", "level", "delay", *METRICS)
@@ -89,16 +83,16 @@ def summarize(rows: Iterable[Mapping], *, bootstrap_resamples: int = 10000, boot
                     by_d.setdefault(r["delay"], []).append(r)
                 entry = {"method": m, "level": lv, "scope": scope, "episodes": len(sel)}
                 for k in METRICS:
-                    entry[k] = _nanmean([_nanmean([float(r[k]) for r in rs]) for rs in by_d.values()])
+                    per_delay = [ref_metrics.defined_mean([float(r[k]) for r in rs]) for rs in by_d.values()]
+                    entry[k] = ref_metrics.defined_mean(per_delay)
                     vals[k].append(entry[k])
                 per_level.append(entry)
             if not vals["return"]:
                 continue
             entry = {"method": m, "scope": scope, "levels": len(vals["return"])}
             for k in METRICS:
-                v = np.asarray(vals[k], np.float64)
-                v = v[np.isfinite(v)]
-                entry[k] = float(v.mean()) if v.size else float("nan")
+                v = ref_metrics.defined_values(vals[k])
+                entry[k] = ref_metrics.defined_mean(v)
                 if v.size:
                     lo, hi = ref_metrics.bootstrap_interval(v, bootstrap_resamples, bootstrap_seed)
                 else:

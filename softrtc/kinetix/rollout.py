@@ -24,9 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from softrtc.jax.guidance import guided_sample_conditioned
+from softrtc.jax import executor as jexec
+from softrtc.jax.fast_chunks import FastChunks
 from softrtc.jax.policy import FlowPolicy
-from softrtc.jax.sampler import conditioning_table, naive_conditioning, rtc_sample_conditioned, select_conditioning
 from softrtc.reference._validate import check_int, real_array
 
 from . import cache
@@ -67,18 +67,15 @@ def _level_task(template: kenv.KinetixTask, level_state) -> kenv.KinetixTask:
 
 def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
     """Pure ``fn(params, level, table, keys [n], delays [n]) -> dict`` of one family ([KE-3]..[KE-6])."""
-    D = min(s, H - s) + 1
+    # The family's sampler: the weight table (traced) replaces the method's own, so one program serves
+    # every method and window of the family.
+    sampler = "train_hard" if family == "rtc" else "inference_hard"
 
     def fn(params, level_state, table, keys, delays):
-        model = nnx.merge(graphdef, params)
+        chunks = FastChunks(nnx.merge(graphdef, params), sampler, s, T, weights=table, stored_transposes=False)
         task = _level_task(template, level_state)
-        n = keys.shape[0]
         k_reset, k_run = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
         obs0, state0 = jax.vmap(task.reset)(k_reset)
-        if family == "rtc":
-            cond_table = conditioning_table(model, table, T)
-        else:
-            cond = naive_conditioning(model, T)
 
         def env_step(carry, inp):
             state, _ = carry
@@ -86,32 +83,33 @@ def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
             obs, state, reward, done, info = jax.vmap(task.step)(step_keys, state, action)
             return (state, obs), (reward, done, info["solved"])
 
-        def chunk(carry, c):
-            state, obs, prev = carry
-            first = c == 0
-            # Row D of the table is all zeros: the first chunk is the naive sampler ([X-2], [S-7], [G-6]).
-            row = jnp.where(first, D, delays)
-            d = jnp.where(first, 0, delays)
+        def request_keys(c):
+            """Per env: the key of request c's noise and of its s env steps ([KE-5])."""
             kc = jax.vmap(lambda k: jax.random.split(jax.random.fold_in(k, c)))(k_run)
-            noise = jax.vmap(lambda k: jax.random.normal(k, (H, A), jnp.float32))(kc[:, 0])
-            prior = jnp.where(first, 0.0, _shift(prev, s))
-            w = table[row]
-            if family == "rtc":
-                new = rtc_sample_conditioned(model, obs, noise, prior, w, T, cond=select_conditioning(cond_table, row))
-            else:
-                new = guided_sample_conditioned(model, obs, noise, prior, w, T, cond=cond)
-            # [X-4]: prev[s : s + d] then new[d : s]; d = 0 for the first chunk.
             i = jnp.arange(s)
-            from_prev = prev[:, jnp.minimum(s + i, H - 1)]
-            seg = jnp.where((i[None, :] < d[:, None])[..., None], from_prev, new[:, :s])
-            step_keys = jax.vmap(lambda k: jax.vmap(lambda j: jax.random.fold_in(k, j))(i))(kc[:, 1])
+            return kc[:, 0], jax.vmap(lambda k: jax.vmap(lambda j: jax.random.fold_in(k, j))(i))(kc[:, 1])
+
+        def execute(state, obs, seg, step_keys):
             (state, obs), (rew, done, solved) = jax.lax.scan(
                 env_step, (state, obs), (jnp.swapaxes(step_keys, 0, 1), jnp.swapaxes(seg, 0, 1)))
+            return state, obs, (seg, rew, done, solved)
+
+        def request(carry, c):
+            state, obs, prev = carry
+            noise_keys, step_keys = request_keys(c)
+            # [X-3] prior, [X-4] segment: each env with its own delay.
+            new = chunks.next(obs, jexec.shift_prior(prev, s), delays, noise_keys)
+            state, obs, (seg, rew, done, solved) = execute(state, obs, jexec.segment(prev, new, s, delays), step_keys)
             return (state, obs, new), (seg, new, rew, done, solved)
 
-        prev0 = jnp.zeros((n, H, A), jnp.float32)
-        _, (segs, chunks, rew, done, solved) = jax.lax.scan(
-            chunk, (state0, obs0, prev0), jnp.arange(C, dtype=jnp.int32))
+        # [X-2] Request 0: the naive sampler, no prior, d = 0; its chunk executes its own tokens 0 .. s-1.
+        noise_keys, step_keys = request_keys(jnp.int32(0))
+        first = chunks.first(obs0, noise_keys)
+        state, obs, out0 = execute(state0, obs0, first[:, :s], step_keys)
+        _, outs = jax.lax.scan(request, (state, obs, first), jnp.arange(1, C, dtype=jnp.int32))
+        segs, chunks_out, rew, done, solved = (jnp.concatenate([a[None], b]) for a, b in
+                                               zip((out0[0], first, *out0[1:]), outs))
+        n = keys.shape[0]
         N = C * s
         actions = jnp.swapaxes(segs, 0, 1).reshape(n, N, A)  # [C, n, s, A] -> [n, C*s, A]
         rew, done, solved = (x.reshape(N, n).T for x in (rew, done, solved))
@@ -122,18 +120,10 @@ def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
         mask = jnp.arange(N)[None, :] < length[:, None]
         ret = jnp.sum(jnp.where(mask, rew, 0.0), axis=1)
         solved_ep = any_done & jnp.take_along_axis(solved, first_done[:, None], axis=1)[:, 0]
-        return {"actions": actions, "chunks": jnp.swapaxes(chunks, 0, 1), "length": length.astype(jnp.int32),
+        return {"actions": actions, "chunks": jnp.swapaxes(chunks_out, 0, 1), "length": length.astype(jnp.int32),
                 "return": ret, "solved": solved_ep, "ended": any_done}
 
     return fn
-
-
-def _shift(prev, s):
-    """Prior Y[j] = prev[j + s], zero past the overlap ([X-3]); batched over envs."""
-    H = prev.shape[-2]
-    j = jnp.arange(H)
-    src = prev[:, jnp.minimum(j + s, H - 1)]
-    return jnp.where((j < H - s)[None, :, None], src, 0.0)
 
 
 _LEVELS: dict = {}

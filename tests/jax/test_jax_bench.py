@@ -11,7 +11,7 @@ jax = pytest.importorskip("jax")
 nnx = pytest.importorskip("flax.nnx")
 import jax.numpy as jnp  # noqa: E402
 
-from softrtc.jax import bench  # noqa: E402
+from softrtc.jax import bench, bench_report, bench_vjp, fast_chunks  # noqa: E402
 from softrtc.jax import cli as jax_cli  # noqa: E402
 
 TINY = dict(arch="tiny", calls=3, warmup=1, batch_sizes=(1, 4), train_calls=2, train_batch=2, num_steps=2)
@@ -36,7 +36,7 @@ def test_rows_and_json_structure(result, tmp_path):
                 "table_build_ms", "vjp_cost", "restricted_pullback", "train_step", "targets", "seconds"):
         assert key in result
     path = tmp_path / "sub" / "bench.json"
-    bench.write_json(result, path)
+    bench_report.write_json(result, path)
     assert json.loads(path.read_text())["rows"] == result["rows"]
 
 
@@ -45,10 +45,10 @@ def test_environment_names_the_cpu_model(result, monkeypatch):
     result written without the model (an older file) still formats."""
     env = result["environment"]
     assert isinstance(env["cpu_model"], str) and env["cpu_model"] and env["cpu_count"] >= 1
-    header = bench.format_table(result).splitlines()[0]
+    header = bench_report.format_table(result).splitlines()[0]
     assert f"({env['cpu_count']} cores, {env['cpu_model']})" in header
     older = dict(result, environment={k: v for k, v in env.items() if k != "cpu_model"})
-    assert f"({env['cpu_count']} cores)" in bench.format_table(older).splitlines()[0]
+    assert f"({env['cpu_count']} cores)" in bench_report.format_table(older).splitlines()[0]
     # Without /proc/cpuinfo the model comes from platform.processor(), else "unknown".
     import builtins
     real_open = builtins.open
@@ -59,10 +59,10 @@ def test_environment_names_the_cpu_model(result, monkeypatch):
         return real_open(path, *a, **k)
 
     monkeypatch.setattr(builtins, "open", no_cpuinfo)
-    monkeypatch.setattr(bench.platform, "processor", lambda: "")
-    assert bench.cpu_model() == "unknown"
-    monkeypatch.setattr(bench.platform, "processor", lambda: "arm64")
-    assert bench.cpu_model() == "arm64"
+    monkeypatch.setattr(bench_report.platform, "processor", lambda: "")
+    assert bench_report.cpu_model() == "unknown"
+    monkeypatch.setattr(bench_report.platform, "processor", lambda: "arm64")
+    assert bench_report.cpu_model() == "arm64"
 
 
 def test_ratios_are_against_naive_of_the_same_run(result):
@@ -103,7 +103,7 @@ def test_targets_and_table(result):
     assert "soft / hard training step" in names
     limits = {t["target"]: t["limit"] for t in result["targets"]}
     assert limits["guided samplers / naive, batch 1"] == 1.7 and limits["guided samplers / naive, batch 4"] == 2.0
-    table = bench.format_table(result)
+    table = bench_report.format_table(result)
     assert table.count("PASS") + table.count("FAIL") == len(result["targets"])
     assert "max|fast-sf|" in table and "training step" in table
 
@@ -114,7 +114,7 @@ def test_vjp_cost_context(result):
     for vc in result["vjp_cost"].values():
         assert vc["forward_ms"] > 0 and vc["forward_vjp_ms"] > 0
         assert vc["ratio"] == pytest.approx(vc["forward_vjp_ms"] / vc["forward_ms"])
-    table = bench.format_table(result)
+    table = bench_report.format_table(result)
     assert "context (not targets)" in table
     assert table.count("one forward + VJP / one forward") == 2
     assert table.count("guided / straightforward naive") == 2
@@ -123,8 +123,8 @@ def test_vjp_cost_context(result):
 
 def test_guided_rows_restrict_the_pull_back_with_enough_rows(result):
     """B-3, G-7: the guided rows take the restricted pull-back iff batch * min(H - s, s) >= 16."""
-    g = bench.guided_tokens_for
-    assert bench.RESTRICT_MIN_ROWS == 16
+    g = fast_chunks.guided_tokens_for
+    assert fast_chunks.RESTRICT_MIN_ROWS == 16
     assert g("inference_soft", 8, 4, 1) is None and g("inference_hard", 8, 4, 3) is None
     assert g("inference_soft", 8, 4, 4) == 4 and g("inference_hard", 8, 4, 32) == 4
     assert g("inference_soft", 8, 6, 8) == 2 and g("inference_soft", 8, 6, 7) is None  # min(H - s, s) = 2
@@ -138,7 +138,7 @@ def test_guided_rows_restrict_the_pull_back_with_enough_rows(result):
     # The tiny benchmark (H 8, s 4) runs batch 1 with the full pull-back and batch 4 with the restricted one,
     # and both agree with the straightforward path (test_fast_and_straightforward_agree).
     assert result["restricted_pullback"] == {"1": False, "4": True}
-    table = bench.format_table(result)
+    table = bench_report.format_table(result)
     assert "pull-back over all tokens" in table
     assert "pull-back restricted to j < H - s" in table
 
@@ -176,7 +176,7 @@ def test_config_validation():
     with pytest.raises(ValueError, match="config"):
         bench.run_benchmark({"calls": 1})
     with pytest.raises(ValueError, match="res"):
-        bench.format_table({})
+        bench_report.format_table({})
 
 
 def test_cli_options(capsys):
@@ -255,10 +255,10 @@ def test_vjp_ablation_cli_end_to_end(tmp_path, capsys):
                               "--warmup", "1", "--steps", "2", "--out", str(out)])
     assert args.func(args) == 0
     printed = capsys.readouterr().out
-    for label, *_ in bench.VJP_VARIANTS.values():
+    for label, *_ in bench_vjp.VJP_VARIANTS.values():
         assert printed.count(label) == 2  # one line per batch size
     res = json.loads(out.read_text())
-    assert set(res["variants"]) == set(bench.VJP_VARIANTS)
+    assert set(res["variants"]) == set(bench_vjp.VJP_VARIANTS)
     for b, rule in (("1", False), ("4", True)):  # batch * min(H - s, s) >= 16 from batch 4 on ([B-3])
         flags = res["restricted_pullback"][b]
         assert flags["shipped"] is rule and flags["other_pullback"] is (not rule) and not flags["plain_autodiff"]
@@ -273,7 +273,7 @@ def test_vjp_ablation_cli_end_to_end(tmp_path, capsys):
     assert jax_cli.run_vjp(bad) == 2
     assert "--execute-horizon" in capsys.readouterr().err
     with pytest.raises(ValueError, match="run_vjp_ablation"):
-        bench.format_vjp_table({})
+        bench_vjp.format_vjp_table({})
 
 
 def test_agreement_check_reports_a_disagreement(monkeypatch):

@@ -13,17 +13,9 @@ jax = pytest.importorskip("jax")
 nnx = pytest.importorskip("flax.nnx")
 import jax.numpy as jnp  # noqa: E402
 
-from softrtc.jax.policy import (  # noqa: E402
-    MAX_PERIOD,
-    MIN_PERIOD,
-    FlowPolicy,
-    MLPMixerBlock,
-    PolicyConfig,
-    load_checkpoint,
-    load_pure_dict,
-    sincos_time_embedding,
-    state_pure_dict,
-)
+from softrtc.jax.mixer import MAX_PERIOD, MIN_PERIOD, MLPMixerBlock, sincos_time_embedding  # noqa: E402
+from softrtc.jax.params import load_checkpoint, load_pure_dict, state_pure_dict  # noqa: E402
+from softrtc.jax.policy import FlowPolicy, PolicyConfig  # noqa: E402
 
 TINY = PolicyConfig(channel_dim=16, channel_hidden_dim=24, token_hidden_dim=6, num_layers=2, action_chunk_size=5)
 OBS, ACT, H = 7, 3, TINY.action_chunk_size
@@ -430,7 +422,7 @@ def test_layer_norm_custom_vjp_matches_autodiff():
     within tolerance, alone and through the whole policy (the guided samplers' VJP in x)."""
     import jax
 
-    from softrtc.jax.policy import layer_norm
+    from softrtc.jax.vjp import layer_norm
 
     rng = np.random.default_rng(3)
     norm = nnx.LayerNorm(16, use_scale=False, use_bias=False, rngs=nnx.Rngs(0))
@@ -451,7 +443,7 @@ def test_layer_norm_custom_vjp_matches_autodiff():
     t = jnp.full((3, TINY.action_chunk_size), 0.3)
     ct = jnp.asarray(rng.standard_normal(xs.shape), jnp.float32)
     got = jax.vjp(lambda a: pol(obs, a, t), xs)[1](ct)[0]
-    import softrtc.jax.policy as P
+    import softrtc.jax.vjp as P
 
     with P.autodiff_vjps(layer_norm=True):  # plain autodiff of the flax module
         want = jax.vjp(lambda a: pol(obs, a, t), xs)[1](ct)[0]
@@ -464,7 +456,7 @@ def test_gelu_recomputing_vjp_matches_autodiff():
     (alone, through the policy in x, and in the parameters) agrees with the shipped autodiff of nnx.gelu."""
     import jax
 
-    import softrtc.jax.policy as P
+    import softrtc.jax.vjp as P
 
     x = jnp.asarray(np.concatenate([np.linspace(-12.0, 12.0, 4001), [0.0, -0.5, 3e-4]]), jnp.float32)
     assert np.array_equal(np.asarray(P.gelu(x)), np.asarray(nnx.gelu(x)))
@@ -505,7 +497,7 @@ def test_autodiff_vjps_switches_blocks_only_while_tracing_and_restores():
     differs), not their values, is restored on exit and on error, and takes bools only."""
     import jax
 
-    import softrtc.jax.policy as P
+    import softrtc.jax.vjp as P
 
     pol = _randomize(FlowPolicy(obs_dim=5, action_dim=2, config=TINY, rngs=nnx.Rngs(22)), 22)
     obs = jnp.ones((1, 5), jnp.float32)
@@ -542,7 +534,7 @@ def test_autodiff_vjps_switches_blocks_only_while_tracing_and_restores():
 
 def test_gelu_and_layer_norm_validate_their_inputs():
     """P-15: the custom-VJP building blocks name the argument and the allowed dtype or shape."""
-    from softrtc.jax.policy import gelu, layer_norm
+    from softrtc.jax.vjp import gelu, layer_norm
 
     with pytest.raises(ValueError, match="x must have a floating dtype"):
         gelu(jnp.arange(3))

@@ -33,9 +33,7 @@ def test_undefined_smoothness_metrics_are_nan_in_jax_and_left_out_of_means():
     pytest.importorskip("kinetix")
     import jax
 
-    from softrtc.arm.study import _mean
     from softrtc.jax import metrics as JMt
-    from softrtc.kinetix.results import _nanmean
 
     a = np.arange(6.0).reshape(3, 2)
     with pytest.raises(ValueError, match="chunk switch"):
@@ -48,8 +46,13 @@ def test_undefined_smoothness_metrics_are_nan_in_jax_and_left_out_of_means():
     assert np.isnan(traced)
     assert jax.jit(JMt.boundary_jump)(a, np.array([0, 0, 1], np.int32)) == pytest.approx(M.boundary_jump(
         a, np.array([0, 0, 1])))
-    assert _mean([1.0, float("nan"), 3.0]) == 2.0 and np.isnan(_mean([float("nan")]))
-    assert _nanmean([1.0, float("nan"), 3.0]) == 2.0 and np.isnan(_nanmean([]))
+    # The one mean of the defined values both simulators use.
+    assert M.defined_mean([1.0, float("nan"), 3.0]) == 2.0 and np.isnan(M.defined_mean([float("nan")]))
+    assert np.isnan(M.defined_mean([])) and M.defined_mean([np.inf, 4]) == 4.0
+    with pytest.raises(ValueError, match=r"^values must be a 1-D array"):
+        M.defined_mean(np.zeros((2, 2)))
+    with pytest.raises(ValueError, match=r"^values must be"):
+        M.defined_mean([True, False])
 
     # Through the summaries: a NaN jerk (arm: D3) is left out of that metric only.
     from softrtc.arm import study

@@ -19,7 +19,8 @@ import jax.numpy as jnp  # noqa: E402
 
 from softrtc.jax import checkpoint as C  # noqa: E402
 from softrtc.jax import weights as JW  # noqa: E402
-from softrtc.jax.policy import FlowPolicy, PolicyConfig, state_pure_dict  # noqa: E402
+from softrtc.jax.params import state_pure_dict  # noqa: E402
+from softrtc.jax.policy import FlowPolicy, PolicyConfig  # noqa: E402
 from softrtc.jax.training import TrainConfig, TrainState, make_optimizer, make_train_step, train  # noqa: E402
 from softrtc.reference import corruption as RC  # noqa: E402
 from softrtc.reference import delays as RD  # noqa: E402

@@ -18,17 +18,11 @@ jax = pytest.importorskip("jax")
 nnx = pytest.importorskip("flax.nnx")
 import jax.numpy as jnp  # noqa: E402
 
-from softrtc.jax import bench, checkpoint, executor, metrics  # noqa: E402
-from softrtc.jax.policy import (  # noqa: E402
-    FlowPolicy,
-    MLPMixerBlock,
-    PolicyConfig,
-    gelu,
-    layer_norm,
-    load_pure_dict,
-    sincos_time_embedding,
-    state_pure_dict,
-)
+from softrtc.jax import bench, bench_report, bench_vjp, checkpoint, executor, metrics  # noqa: E402
+from softrtc.jax.mixer import MLPMixerBlock, sincos_time_embedding  # noqa: E402
+from softrtc.jax.params import load_pure_dict, state_pure_dict  # noqa: E402
+from softrtc.jax.policy import FlowPolicy, PolicyConfig  # noqa: E402
+from softrtc.jax.vjp import gelu, layer_norm  # noqa: E402
 from softrtc.jax.training import TrainConfig, make_train_step  # noqa: E402
 
 # One tiny architecture for every test (the benchmark's "tiny" one), so that its eager initialisation and
@@ -272,16 +266,16 @@ def test_write_json_is_strict_atomic_and_refuses_directories(tmp_path):
     path = tmp_path / "out" / "bench.json"
     res = {"chunk": {"1": {"x": np.float32(1.5), "n": np.int64(3), "ok": np.bool_(True)}},
            "bad": [float("nan"), np.float32(np.inf)], "t": (1, 2)}
-    bench.write_json(res, path)
+    bench_report.write_json(res, path)
     text = path.read_text()
     assert "NaN" not in text and "Infinity" not in text
     loaded = json.loads(text)
     assert loaded == {"chunk": {"1": {"x": 1.5, "n": 3, "ok": True}}, "bad": [None, None], "t": [1, 2]}
-    bench.write_json({"chunk": {}, "z": np.float32(1)}, path)
+    bench_report.write_json({"chunk": {}, "z": np.float32(1)}, path)
     assert json.loads(path.read_text()) == {"chunk": {}, "z": 1.0}
-    _raises("path", lambda: bench.write_json({"chunk": {}}, tmp_path))
-    _raises("res['z']", lambda: bench.write_json({"chunk": {}, "z": object()}, path))
-    _raises("res['chunk']", lambda: bench.write_json({"chunk": {1: 2}}, path))
+    _raises("path", lambda: bench_report.write_json({"chunk": {}}, tmp_path))
+    _raises("res['z']", lambda: bench_report.write_json({"chunk": {}, "z": object()}, path))
+    _raises("res['chunk']", lambda: bench_report.write_json({"chunk": {1: 2}}, path))
     assert json.loads(path.read_text()) == {"chunk": {}, "z": 1.0}
     assert os.listdir(path.parent) == ["bench.json"]
 
@@ -303,18 +297,18 @@ def test_bench_rows_names_policy_and_tables_are_validated(pol):
     assert [(r.name, r.path) for r in rows] == [("naive", "fast"), ("naive", "straightforward")]
     agree = bench.check_agreement(config, policy, 1, ("naive",))
     assert agree["naive"]["ok"]
-    e = _raises("rows", lambda: bench.format_table({"chunk": {}, "config": {}}))
+    e = _raises("rows", lambda: bench_report.format_table({"chunk": {}, "config": {}}))
     assert "run_benchmark" in str(e)
     partial = {k: {} for k in ("config", "architecture", "environment", "chunk", "agreement", "seconds")}
-    _raises("'delay'", lambda: bench.format_table(dict(partial, rows=[], targets=[])))
-    _raises("variants", lambda: bench.format_vjp_table({"chunk": {}}))
-    _raises("'arch'", lambda: bench.format_vjp_table(
+    _raises("'delay'", lambda: bench_report.format_table(dict(partial, rows=[], targets=[])))
+    _raises("variants", lambda: bench_vjp.format_vjp_table({"chunk": {}}))
+    _raises("'arch'", lambda: bench_vjp.format_vjp_table(
         {k: {} for k in ("config", "environment", "variants", "chunk", "agreement", "restricted_pullback",
                          "seconds")}))
     full = {"config": dataclasses.asdict(config), "environment": {"backend": "cpu", "cpu_count": 2, "jax": "x"},
             "architecture": {"obs_dim": 7, "action_dim": 3, "action_chunk_size": 8}, "rows": [], "chunk": {},
             "agreement": {}, "targets": [], "seconds": 1.0}
-    assert "softrtc bench runtime" in bench.format_table(full)
+    assert "softrtc bench runtime" in bench_report.format_table(full)
 
 
 def test_policy_sizes_are_bounded():

@@ -21,7 +21,8 @@ import flax.nnx as nnx  # noqa: E402
 import jax  # noqa: E402
 
 from softrtc.jax import checkpoint as jckpt  # noqa: E402
-from softrtc.jax.policy import FlowPolicy, PolicyConfig, load_pure_dict, state_pure_dict  # noqa: E402
+from softrtc.jax.params import load_pure_dict, state_pure_dict  # noqa: E402
+from softrtc.jax.policy import FlowPolicy, PolicyConfig  # noqa: E402
 from softrtc.kinetix import data as kdata  # noqa: E402
 from softrtc.reference import executor as ref_executor  # noqa: E402
 from softrtc.reference import metrics as ref_metrics  # noqa: E402
@@ -96,7 +97,7 @@ def test_parse_method_and_tables():
     for m in ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft"):
         spec = parse_method(m)
         t = rollout_weight_table(spec, 8, S)
-        assert t.shape == (6, 8) and np.all(t[-1] == 0)  # last row: the first chunk, naive ([X-2])
+        assert t.shape == (5, 8)  # one row per delay 0 .. min(s, H - s)
         for d in range(5):
             np.testing.assert_allclose(t[d], ref_methods.method_weights(m, 8, S, d, spec.window), atol=1e-6)
     np.testing.assert_array_equal(rollout_weight_table(parse_method("train_soft:offset:0"), 8, S),

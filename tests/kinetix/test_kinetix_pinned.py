@@ -226,7 +226,8 @@ def _release_files(tmp_path, level="grasp_easy", H=8, obs_dim=5, action_dim=2):
     import flax.nnx as nnx
     import jax
 
-    from softrtc.jax.policy import FlowPolicy, PolicyConfig, state_pure_dict
+    from softrtc.jax.params import state_pure_dict
+    from softrtc.jax.policy import FlowPolicy, PolicyConfig
     from softrtc.kinetix import data as kdata
 
     bc = tmp_path / "bc" / "3" / "policies"
