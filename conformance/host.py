@@ -46,7 +46,7 @@ def serve(impl: str, stdin, out) -> int:
     send(protocol.hello(inv.name, inv.time_convention, inv.functions))
     for raw in iter(stdin.readline, b""):
         try:
-            msg = parse_json(raw.decode("utf-8"))
+            msg = parse_json(raw.decode("utf-8"), checked=False)  # the runner checked every number ([CF-28])
             rid, attr, args = msg["id"], msg["function"], msg["args"]
         except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
             send({"id": None, "error": {"kind": "bad_call", "message": f"unreadable request: {_describe(exc)}"}})
