@@ -28,7 +28,8 @@ def vector_files():
 def test_js_port_passes_every_case_it_supports(vector_files):
     """[CF-31], [CF-29], [CF-23], [E-2], [W-1], [S-3], [X-4] The port passes every case of the functions it
     has (traces included), with the others unsupported and none failed; the integer arguments written as
-    reals (E.endpoint.reject.float-d, X.execute_chunks.reject.float-d) are rejected by its own parser."""
+    reals (E.endpoint.reject.float-d, X.execute_chunks.reject.float-d) are rejected by its own parser. The
+    README's conformance table shows these counts."""
     res = runner.run(impl_cmd=f"{NODE} {PORT / 'protocol.js'}", files=vector_files)
     assert res.ok and res.counts["fail"] == 0, runner.format_summary(res)
     assert res.adapter_name == "softrtc-js"
@@ -39,6 +40,12 @@ def test_js_port_passes_every_case_it_supports(vector_files):
     for cid in ("E.endpoint.reject.float-d", "X.execute_chunks.reject.float-d", "E.endpoint.exact-ceil.lam1.6.d5"):
         assert by_id[cid].status == "pass"
     assert not any(c.message == runner.TRACE_NOT_PROVIDED for c in res.cases)  # traces are checked
+    # The README's table states these counts; it must follow the vectors.
+    readme = (ROOT / "README.md").read_text()
+    n = res.counts
+    assert f"| implementation | result ({len(res.cases)} cases) |" in readme
+    assert f"| `conformance/ports/js` (JavaScript, `--impl-cmd`) | {n['pass']} pass, {n['unsupported']} unsupported" \
+        in readme
 
 
 @needs_node
