@@ -1,9 +1,15 @@
 """Conformance suite of the softrtc specification (chapter CF, spec/40-conformance.md).
 
-  generate   writes the JSON vector files of conformance/vectors/ from the NumPy reference ([CF-1]..[CF-6])
-  adapter    the adapter interface and loader for implementations under test ([CF-7]..[CF-12])
-  runner     runs every vector case against an adapter and reports per requirement id ([CF-13]..[CF-18])
-  cli        `softrtc conformance run|generate` ([CF-19])
+  generate        writes the JSON vector files of conformance/vectors/ from the NumPy reference ([CF-1]..[CF-6]);
+                  the cases themselves in cases_training, cases_runtime (cases_base: tolerances, exact entries)
+  adapter         the adapter interface and loader for implementations under test ([CF-7]..[CF-12], [CF-27])
+  vectors_io      reading vector files, the number convention and integrity ([CF-23], [CF-25]);
+  vector_checks   the checks of each case before any implementation runs ([CF-24], [CF-28])
+  runner          runs every case and compares ([CF-13]..[CF-18]); results: summary, JSON report, JUnit
+  protocol        the runner's end of the child-process protocol ([CF-29]..[CF-31]); host: the Python end;
+  invoke          one call of a Python adapter, shared by the host and --in-process
+  cli             `softrtc conformance run|generate` ([CF-19])
+  ports/js        a JavaScript port speaking the protocol (not a Python package)
 
 Importing this package imports only the standard library and NumPy.
 """
