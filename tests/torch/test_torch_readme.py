@@ -1,0 +1,84 @@
+"""The README's PyTorch section: its example runs, its tables are the committed results' ([PT-8], [PT-9])."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+ROOT = Path(__file__).resolve().parents[2]
+SECTION = "## PyTorch (`softrtc.torch`)"
+
+
+def _section() -> str:
+    text = (ROOT / "README.md").read_text()
+    start = text.index(SECTION)
+    end = text.find("\n## ", start + len(SECTION))
+    return text[start:end if end > 0 else None]
+
+
+def _blocks(lang: str = "") -> list:
+    """The fenced blocks of the section whose opening fence names ``lang`` ("" for plain fences)."""
+    blocks, current, opened = [], None, None
+    for line in _section().splitlines():
+        if line.startswith("```"):
+            if current is None:
+                current, opened = [], line[3:].strip()
+            else:
+                if opened == lang:
+                    blocks.append("\n".join(current) + "\n")
+                current = None
+        elif current is not None:
+            current.append(line)
+    return blocks
+
+
+def test_readme_example_trains_and_samples():
+    """[PT-4], [PT-1] The README's example runs as written: one soft training step in flipped time (finite
+    loss, gradients on every parameter) and one soft-sampler chunk of shape [1, H, A] whose weights clamp
+    the first d = 3 tokens."""
+    code = _blocks("python")
+    assert len(code) == 1 and len(code[0].splitlines()) <= 25
+    env = {}
+    exec(compile(code[0], "README.md", "exec"), env)
+    assert torch.isfinite(env["loss"]) and env["chunk"].shape == (1, env["H"], env["A"])
+    assert env["w"][:3].tolist() == [1.0, 1.0, 1.0] and float(env["w"][3]) < 1.0
+    assert all(p.grad is not None for p in env["model"].parameters())
+
+
+def run2_sentence() -> str:
+    """The README's line on the second committed benchmark run, from its file."""
+    from softrtc.torch import bench
+
+    t = {x["name"]: x for x in bench.read_json(ROOT / "results" / "torch" / "bench_run2.json")["targets"]}
+    verdict = "all targets passed" if all(x["passed"] for x in t.values()) else "not every target passed"
+    return (f"{t['train-time samplers / naive, batch 1']['value']:.2f} and "
+            f"{t['train-time samplers / naive, batch 32']['value']:.2f} for the training-time samplers at batch 1 "
+            f"and 32, {t['soft / hard training step']['value']:.2f} soft / hard and "
+            f"{t['soft / plain flow-matching step']['value']:.2f} soft / plain; {verdict}")
+
+
+def test_readme_bench_table_is_the_committed_result():
+    """[PT-8] The benchmark table in the README is `softrtc bench torch --table results/torch/bench.json`, and
+    its line on the second run gives that run's committed ratios."""
+    from softrtc.torch import bench
+
+    want = bench.format_table(bench.read_json(ROOT / "results" / "torch" / "bench.json"))
+    assert want.strip() in [b.strip() for b in _blocks()]
+    assert " ".join(run2_sentence().split()) in " ".join(_section().split())
+
+
+def test_readme_arm_table_is_the_committed_result():
+    """[PT-9] The arm table in the README is `softrtc arm torch --table results/torch/arm.json`: the summary
+    recomputed from the committed episodes (paired: every policy ran the same env seeds at every delay)."""
+    pytest.importorskip("pymunk")
+    from softrtc.torch import arm
+
+    res = arm.read_results(ROOT / "results" / "torch" / "arm.json")
+    assert arm.format_table(res["summary"]).strip() in [b.strip() for b in _blocks()]
+    seeds = {}
+    for r in res["episodes"]:
+        seeds.setdefault(r["policy"], set()).add((r["delay"], r["env_seed"]))
+    assert len(set(map(frozenset, seeds.values()))) == 1 and len(seeds) == 6
