@@ -83,7 +83,8 @@ class RTCObjective:
 
     def delays(self, u: torch.Tensor) -> torch.Tensor:
         """d = d_min + #{k : cdf_k <= u} for uniforms u [B] ([D-3]); int64 [B]."""
-        return self.config.d_min + (self.cdf <= u[..., None]).sum(-1)
+        # the last CDF entry is 1 > u: only the first n - 1 count, as in delays.sample_delay
+        return self.config.d_min + (self.cdf[:-1] <= u[..., None]).sum(-1)
 
     def weights(self, d: torch.Tensor) -> torch.Tensor:
         """Rows d of the weight table: [B, H] ([PT-4])."""
