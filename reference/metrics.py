@@ -30,12 +30,12 @@ def finite_differences(actions, order: int) -> np.ndarray:
     k = check_int("order", order, 1, 16)
     if a.shape[0] <= k:
         raise ValueError(f"actions must have more than order={k} steps, got {a.shape[0]}")
-    return np.diff(a, n=k, axis=0)
+    return np.diff(a, n=k, axis=0)  # [M-1] Δ^k a_t
 
 
 def difference_norm(actions, order: int) -> float:
     """D_k = mean over t of || Δ^k a_t ||_2 ([M-1])."""
-    return float(np.mean(np.linalg.norm(finite_differences(actions, order), axis=-1)))
+    return float(np.mean(np.linalg.norm(finite_differences(actions, order), axis=-1)))  # [M-1]
 
 
 def action_delta(actions) -> float:
@@ -53,7 +53,11 @@ def switch_steps(chunk_index) -> np.ndarray:
     ci = real_array("chunk_index", chunk_index, "iu")
     if ci.ndim != 1 or ci.size == 0:
         raise ValueError(f"chunk_index must be a non-empty 1-D integer array, got shape {list(ci.shape)}")
-    return np.nonzero(ci[1:] != ci[:-1])[0] + 1
+    return _switch_steps(ci)
+
+
+def _switch_steps(ci: np.ndarray) -> np.ndarray:
+    return np.nonzero(ci[1:] != ci[:-1])[0] + 1  # [M-3] t >= 1 with c_t != c_{t-1}
 
 
 def boundary_jump(actions, chunk_index) -> float:
@@ -62,10 +66,10 @@ def boundary_jump(actions, chunk_index) -> float:
     ci = real_array("chunk_index", chunk_index, "iu")
     if ci.shape != (a.shape[0],):
         raise ValueError(f"chunk_index must have shape [{a.shape[0]}], got {list(ci.shape)}")
-    sw = switch_steps(ci)
+    sw = _switch_steps(ci)
     if sw.size == 0:
         raise ValueError("chunk_index has no chunk switch; the boundary jump needs at least one")
-    return float(np.mean(np.linalg.norm(a[sw] - a[sw - 1], axis=-1)))
+    return float(np.mean(np.linalg.norm(a[sw] - a[sw - 1], axis=-1)))  # [M-3] mean || a_t - a_{t-1} || over switches
 
 
 def solve_rate(solved) -> float:
