@@ -173,7 +173,7 @@ def format_compile_bench(res: dict) -> str:
              "---|---|---|---|---|---|---"]
     for name, e in p.items():
         label = "bare env scan" if name == "bare" else f"rollout {name}"
-        vs = "" if name == "bare" else (f"compile {e['cold_over_bare']:.2f}x, "
+        vs = "–" if name == "bare" else (f"compile {e['cold_over_bare']:.2f}x, "
                                         f"throughput {e['throughput_over_bare']:.3f}x")
         lines.append(f"{label} | {e['cold_s']:.1f} | {e['warm_s']:.2f} ({e['warm_source']}) | "
                      f"{e['warm_over_cold']:.3f} | {e['run_s']:.1f} | {e['steps_per_s']:.0f} | {vs}")

@@ -168,9 +168,23 @@ TINY_POLICY = ["--channel-dim", "8", "--channel-hidden-dim", "8", "--token-hidde
                "--chunk-size", "8"]
 
 
+@pytest.fixture
+def restore_cache():
+    from softrtc.kinetix import cache
+
+    before = dict(cache._state)
+    yield
+    cache.clear_memory()
+    if before["configured"]:
+        cache.enable_compile_cache(before["dir"])
+    else:
+        cache.enable_compile_cache(None)
+        cache._state["configured"] = False
+
+
 @needs_levels
 @pytest.mark.slow
-def test_pipeline_end_to_end_tiny(tmp_path, capsys):
+def test_pipeline_end_to_end_tiny(tmp_path, capsys, restore_cache):
     """KP-4, KP-6, KP-7, KP-8, KP-9, KP-10, KP-11, KP-12, KP-13, KC-1: train-expert -> generate-data ->
     train-bc -> finetune -> eval on one level with tiny budgets, every file in the release's layout; a
     resumed PPO run equals the uninterrupted one bitwise; recorded data obey the done/length/return
