@@ -14,7 +14,9 @@ Results are one CSV per cell (row, fine-tuning seed, delay) under
 ``<out>/<task>/episodes/``; a cell whose file is complete is skipped, so a run
 can be stopped and resumed, or run in parts (``--rows``, ``--delays``).
 Fine-tuned checkpoints go to a work folder (not results); their digests and
-final losses are recorded in ``<out>/<task>/finetunes.json``.
+final losses are recorded in ``<out>/<task>/finetunes/<fine-tune>.json``. A
+cell's file is named by the row's episode key, seed and delay, so rows that
+share episodes find the same file.
 """
 
 from __future__ import annotations
@@ -401,6 +403,8 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
                                   "sampler_window": None if r.infer_window is None else r.infer_window.to_dict()}
                          for r in all_rows},
                 "order": [r.name for r in all_rows]}
+    # Compared as JSON: tuples come back from the file as lists.
+    manifest = json.loads(json.dumps(manifest))
     if manifest_path.is_file():
         old = json.loads(manifest_path.read_text())
         if old.get("budget_values") != manifest["budget_values"] or old.get("base_sha256_16") != \
@@ -417,8 +421,6 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
     sigma = json.loads(prior_path.read_text())["sigma"]
 
     # Fine-tunes, one per (train key, seed), shared by every row with that key.
-    ft_path = out_dir / "finetunes.json"
-    finetunes = json.loads(ft_path.read_text()) if ft_path.is_file() else {}
     base = None
     data = None
     ckpt_of = {}
@@ -440,8 +442,11 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
                         base = load_arm_checkpoint(base_path)
                         data = _demos(Path(work), budget)
                     log(f"[{task.name}] fine-tune {tag} ({r.name}, {budget.finetune_steps} steps)")
-                    finetunes[tag] = _finetune(key, r, task, sd, budget, data, base, sigma, ckpt)
-                    ft_path.write_text(json.dumps(finetunes, indent=1, sort_keys=True) + "\n")
+                    # One file per fine-tune: runs in parts may fine-tune in parallel processes.
+                    rec = _finetune(key, r, task, sd, budget, data, base, sigma, ckpt)
+                    (out_dir / "finetunes").mkdir(exist_ok=True)
+                    (out_dir / "finetunes" / f"{tag}.json").write_text(json.dumps(rec, indent=1, sort_keys=True)
+                                                                       + "\n")
             ckpt_of[(r.name, sd)] = ckpt
             n_eps = budget.main_episodes if r.tier == "main" else budget.sweep_episodes
             n_eps = n_eps if episodes is None else min(n_eps, episodes)
@@ -473,11 +478,4 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
                 "elapsed)")
         if workers != 1:
             pool.shutdown()
-    # The cell index maps every (row, seed, delay) to its episode file (shared files included).
-    index_path = out_dir / "cells.json"
-    index = json.loads(index_path.read_text()) if index_path.is_file() else {}
-    for (r, sd, d, n, path, ckpt) in jobs:
-        if path.is_file():
-            index[f"{r.name}|{sd}|{d}"] = path.name
-    index_path.write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
     return {"cells": len(jobs), "ran": len(todo), "seconds": time.perf_counter() - t0}

@@ -40,36 +40,50 @@ def load_results(folder) -> dict:
     if not (folder / "manifest.json").is_file():
         raise ValueError(f"folder must hold an arm experiment's results (manifest.json), got {str(folder)!r}")
     manifest = json.loads((folder / "manifest.json").read_text())
-    index = json.loads((folder / "cells.json").read_text()) if (folder / "cells.json").is_file() else {}
+    # Cells from the episode files themselves (``<eval key>_s<seed>_d<delay>.csv``): every row whose eval key
+    # names a file has that cell, so rows that share episodes ([AX-3]) share them here too.
+    by_key = {}
+    for f in sorted((folder / "episodes").glob("*.csv")):
+        key, seed, delay = f.stem.rsplit("_", 2)
+        by_key.setdefault(key, []).append((int(seed[1:]), int(delay[1:]), f))
     cells, cache = {}, {}
-    for k, fname in sorted(index.items()):
-        row, seed, delay = k.split("|")
-        if fname not in cache:
-            cache[fname] = read_episodes(folder / "episodes" / fname)
-        cells[(row, int(seed), int(delay))] = cache[fname]
+    for row, info in manifest["rows"].items():
+        for seed, delay, f in by_key.get(info["eval_key"], []):
+            if f not in cache:
+                cache[f] = read_episodes(f)
+            cells[(row, seed, delay)] = cache[f]
     prior = json.loads((folder / "prior_error.json").read_text()) if (folder / "prior_error.json").is_file() else None
     ft = json.loads((folder / "finetunes.json").read_text()) if (folder / "finetunes.json").is_file() else {}
+    for f in sorted((folder / "finetunes").glob("*.json")):
+        ft[f.stem] = json.loads(f.read_text())
     return {"manifest": manifest, "cells": cells, "prior": prior, "finetunes": ft, "folder": str(folder)}
 
 
-def _matrix(res, row, delays, metric):
-    """``[seeds, delays x episodes]`` of a metric (NaN where undefined); None when a delay is missing."""
-    seeds = sorted({s for (r, s, d) in res["cells"] if r == row})
+def _seeds(res, row):
+    return sorted({s for (r, s, d) in res["cells"] if r == row})
+
+
+def _matrix(res, row, delays, metric, seeds=None):
+    """``[seeds, delays x episodes]`` of a metric (NaN where undefined); None when a delay is missing.
+
+    ``seeds`` restricts the rows to those fine-tuning seeds (the base's seed 0 is kept whatever it says).
+    """
+    seeds = _seeds(res, row) if seeds is None or _seeds(res, row) == [0] else \
+        [s for s in _seeds(res, row) if s in seeds]
     if not seeds:
         return None
+    # A seed counts for a scope only when it ran every delay of it with the same episodes as the others.
+    seeds = [s for s in seeds if all((row, s, d) in res["cells"] for d in delays)]
+    if not seeds:
+        return None
+    n = min(len(res["cells"][(row, s, d)]) for s in seeds for d in delays)
     mats = []
     for s in seeds:
         parts = []
         for d in delays:
-            eps = res["cells"].get((row, s, d))
-            if eps is None:
-                return None
-            parts.append([float(e[metric]) for e in sorted(eps, key=lambda e: e["episode"])])
-        if len({len(p) for p in parts}) != 1:
-            return None
+            eps = sorted(res["cells"][(row, s, d)], key=lambda e: e["episode"])[:n]
+            parts.append([float(e[metric]) for e in eps])
         mats.append(np.concatenate(parts))
-    if len({m.shape for m in mats}) != 1:
-        return None
     return np.stack(mats)
 
 
@@ -93,7 +107,8 @@ def summarize(res) -> dict:
         ds = _delays_of(res, row)
         if not ds:
             continue
-        seeds = sorted({s for (r, s, d) in res["cells"] if r == row})
+        # Seeds that ran every delay of the row; the others still count in the scopes they complete.
+        seeds = [s for s in _seeds(res, row) if all((row, s, d) in res["cells"] for d in ds)] or _seeds(res, row)
         n_eps = min(len(res["cells"][(row, s, d)]) for s in seeds for d in ds if (row, s, d) in res["cells"])
         entry = {"delays": ds, "seeds": len(seeds), "episodes": n_eps, "per_delay": {}, "scopes": {}, "vs_hard": {}}
         scopes = {f"d{d}": [d] for d in ds}
@@ -109,8 +124,10 @@ def summarize(res) -> dict:
             entry["scopes"][scope] = stats
             if row != "train_hard" and any(r == "train_hard" for (r, s, d) in res["cells"]):
                 tests = {}
+                # Fine-tuned rows pair seed by seed: only the seeds both ran (the base pairs with every seed).
+                common = [x for x in _seeds(res, row) if x in _seeds(res, "train_hard")] or None
                 for m in METRICS:
-                    a, b = _matrix(res, row, dl, m), _matrix(res, "train_hard", dl, m)
+                    a, b = _matrix(res, row, dl, m, common), _matrix(res, "train_hard", dl, m, common)
                     if a is None or b is None or a.shape[1] != b.shape[1] or \
                             (a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0])):
                         continue
@@ -186,9 +203,10 @@ def verdicts(summary, manifest) -> list:
         v = "inconclusive"
     else:
         signs = {_sign(t_ih), _sign(t_is)}
-        v = "supported" if signs == {-1} else ("not supported" if 1 in signs or signs == {0} and
-                                               max(t_ih["hi"], t_is["hi"]) < 0.05 else "inconclusive")
-        if v == "inconclusive":
+        v = "supported" if signs == {-1} else ("not supported" if 1 in signs else "inconclusive")
+        if v == "not supported":
+            why = "an inference-time method succeeds more often than Train Hard at high delay"
+        elif v == "inconclusive":
             why = "the paired intervals include 0"
     out.append({"claim": "Training-time RTC beats inference-time RTC at high delay (success).", "verdict": v,
                 "evidence": ev, "reason": why})
@@ -379,6 +397,35 @@ def _prior_section(res, summary, manifest) -> list:
     return lines
 
 
+def _coverage(res, summary, m) -> list:
+    """What ran against what the budget asks for, and what a larger budget would add."""
+    b = m["budget_values"]
+    s = m["execute_horizon"]
+    maxd = min(s, H - s)
+    lines = []
+    short = []
+    for r, info in _rows_in_order(m):
+        if info["tier"] == "sweep" and b.get("sweep_rows") is not None and r not in b["sweep_rows"]:
+            continue
+        want_s = b["main_seeds"] if info["tier"] == "main" else b["sweep_seeds"]
+        want_s = 1 if info["train_key"] is None else want_s
+        want_e = b["main_episodes"] if info["tier"] == "main" else b["sweep_episodes"]
+        want_d = list(range(maxd + 1)) if info["tier"] == "main" else [0, maxd - 1, maxd]
+        if info["tier"] == "sweep" and any(i["eval_key"] == info["eval_key"] and i["tier"] == "main"
+                                           for _, i in _rows_in_order(m)):
+            continue  # its episodes are a main row's ([AX-3])
+        e = summary.get(r)
+        if e is None:
+            short.append(f"`{r}` not run")
+        elif e["seeds"] < want_s or e["episodes"] < want_e or e["delays"] != want_d:
+            short.append(f"`{r}` {e['seeds']}/{want_s} seeds, {e['episodes']}/{want_e} episodes per delay, delays "
+                         f"{e['delays']}")
+    if short:
+        lines += ["Ran below the budget (a larger run extends these cells; the verdicts below mark what it would "
+                  "decide): " + "; ".join(short) + ".", ""]
+    return lines
+
+
 def render_report(res_by_task: dict) -> str:
     """REPORT.md text from ``{task: load_results(...)}``."""
     out = ["# Arm experiment: does Soft RTC do what the paper claims?", "",
@@ -394,6 +441,7 @@ def render_report(res_by_task: dict) -> str:
                 f"Budget `{m['budget']}`: {b['finetune_steps']} fine-tune steps from the shipped base, episodes of at "
                 f"most {b['max_steps']} ticks, env seeds from {m['seed0']}, sampler key seed {m['key_seed']}. "
                 "Rows below show the seeds x episodes per delay actually run.", ""]
+        out += _coverage(res, summary, m)
         out += ["### Verdicts", ""]
         for v in verdicts(summary, m):
             out.append(f"- **{v['claim']}** Verdict: **{v['verdict']}**"

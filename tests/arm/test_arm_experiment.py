@@ -130,14 +130,18 @@ def test_quick_experiment_pipeline(tmp_path):
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-3000:]
     task = tmp_path / "res" / "overlap4"
-    cells = json.loads((task / "cells.json").read_text())
     manifest = json.loads((task / "manifest.json").read_text())
-    # Shared rows point at the same episode file; every file has the quick budget's episodes.
-    assert cells["soft1_clip|1|0"] == cells["train_hard|1|0"]
-    for name in set(cells.values()):
-        lines = (task / "episodes" / name).read_text().strip().splitlines()
-        assert len(lines) == 1 + manifest["budget_values"]["main_episodes"] or \
-            len(lines) == 1 + manifest["budget_values"]["sweep_episodes"]
+    from softrtc.arm.report import load_results
+
+    cells = load_results(task)["cells"]
+    # Shared rows read the same episode file; every file has the quick budget's episodes.
+    assert cells[("soft1_clip", 1, 0)] is cells[("train_hard", 1, 0)]
+    assert ("naive", 0, 4) in cells and ("soft2_clip_prior_noise", 1, 4) in cells
+    for f in (task / "episodes").glob("*.csv"):
+        lines = f.read_text().strip().splitlines()
+        assert len(lines) in (1 + manifest["budget_values"]["main_episodes"],
+                              1 + manifest["budget_values"]["sweep_episodes"])
+    assert len(list((task / "finetunes").glob("*.json"))) == 6
     report = (tmp_path / "res" / "REPORT.md").read_text()
     assert report.count("Verdict: **") >= 7
     for png in ("frontier.png", "sweeps.png", "success_by_delay.png", "window_weights.png"):
@@ -146,3 +150,25 @@ def test_quick_experiment_pipeline(tmp_path):
     again = subprocess.run(cmd[:-1], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert again.returncode == 0 and ", 0 run now" in again.stdout
 
+
+def test_committed_report_matches_results():
+    """AX-6: the committed REPORT.md and the README's arm table are what `softrtc arm report` makes of the results."""
+    from softrtc.arm.report import README_BEGIN, README_END, load_results, render_readme_table, render_report
+
+    tasks = sorted(p.parent.name for p in RESULTS.glob("*/manifest.json"))
+    assert tasks, "results/arm holds no experiment results"
+    res = {t: load_results(RESULTS / t) for t in tasks}
+    assert (RESULTS / "REPORT.md").read_text() == render_report(res)
+    readme = (ROOT / "README.md").read_text()
+    i, j = readme.find(README_BEGIN), readme.find(README_END)
+    assert 0 <= i < j
+    assert readme[i:j + len(README_END)] == render_readme_table(res["overlap4"])
+    # Every verdict in the report has its evidence and every interval is ordered.
+    for t, r in res.items():
+        from softrtc.arm.report import summarize
+
+        for row, e in summarize(r).items():
+            for scope in e["scopes"].values():
+                for st in scope.values():
+                    if math.isfinite(st["lo"]):
+                        assert st["lo"] <= st["mean"] + 1e-12 and st["mean"] <= st["hi"] + 1e-12
