@@ -127,6 +127,27 @@ DIAGNOSES = {
             "[S-6]'s inference methods are LeRobot's guided sampler, which fails through G-3. Their weights "
             "agree on valid requests; the request with `d > s` is accepted (S-8)."),
     },
+    "S-1": {
+        "functions": ["naive_sample"],
+        "kind": "glue, no bound on the step count",
+        "summary": "a step count above 65536 is accepted (the Euler loop is adapter glue)",
+        "text": (
+            "LeRobot has no naive sampler function: each flow policy writes its Euler loop inline, so the "
+            "`naive_sample` cases run the adapter's copy of that loop ([TP-6]) and test glue, not LeRobot. "
+            "The one failing case asks for `T = 65537` steps, beyond [N-12]'s bound; LeRobot's policies take "
+            "their step count from their configuration and bound it nowhere, and the glue follows them. "
+            "Every valid step count agrees with [S-1]."),
+    },
+    "CF-34": {
+        "functions": ["guidance_weight"],
+        "kind": "no input checks; a different error type",
+        "summary": "an array flow time raises TypeError, not ValueError",
+        "text": (
+            "[CF-34] settles that `guidance_weight` takes a scalar flow time `t` and that an array is an "
+            "input error ([N-7]: `ValueError`). LeRobot's guidance weight is computed inside "
+            "`RTCProcessor.denoise_step`, which multiplies the time by tensors without checking it; given "
+            "an array it fails in that arithmetic with `TypeError`. Valid scalar times agree (G-4)."),
+    },
     "S-8": {
         "functions": ["method_weights"],
         "kind": "no check of d against s",
@@ -158,24 +179,27 @@ DIAGNOSES = {
             "only `H = 4097`, beyond [N-12]'s range, is accepted instead of rejected."),
     },
     "N-12": {
-        "functions": ["hard_weights", "prefix_weights"],
+        "functions": ["hard_weights", "naive_sample", "prefix_weights"],
         "kind": "no range check",
-        "summary": "no upper bound on the chunk length",
+        "summary": "no upper bound on the chunk length or the step count",
         "text": (
-            "LeRobot bounds no chunk length; `H = 4097` gives weights of that length. The spec bounds `H` at "
-            "4096 so that every port knows where an input is an error; nothing in LeRobot depends on a bound."),
+            "LeRobot bounds no chunk length; `H = 4097` gives weights of that length. Nor does it bound the "
+            "number of Euler steps, and the adapter's glue loop (S-1) follows it, so `T = 65537` runs. The spec "
+            "bounds `H` at 4096 and `T` at 65536 so that every port knows where an input is an error; nothing "
+            "in LeRobot depends on a bound."),
     },
     "N-7": {
         "functions": ["execute_chunks", "guidance_weight", "guidance_weights", "hard_weights", "method_weights",
-                      "prefix_weights"],
+                      "naive_sample", "prefix_weights"],
         "kind": "no input checks",
         "summary": "invalid inputs return results instead of raising ValueError",
         "text": (
             "LeRobot's RTC code checks two inputs (`RTCConfig` rejects a guidance cap or a debug length "
             "`<= 0`, and the `max_guidance` cases that need it pass); everything else is taken as given. A "
             "delay beyond the overlap or below 0, a window end below the delay or past the chunk, a chunk "
-            "longer than 4096 and flow time 1 each return a result instead of raising `ValueError` (see "
-            "W-1, G-1, G-4, S-8, X-1, X-2); a float delay reaches Python's slicing, which raises `TypeError`."),
+            "longer than 4096, flow time 1 and more than 65536 Euler steps (in the adapter's glue loop, which "
+            "follows LeRobot's unbounded step count) each return a result instead of raising `ValueError` (see "
+            "W-1, G-1, G-4, S-1, S-8, X-1, X-2); an array flow time raises `TypeError` (CF-34); a float delay reaches Python's slicing, which raises `TypeError`."),
     },
     "X-1": {
         "functions": ["execute_chunks", "method_weights"],

@@ -178,8 +178,11 @@ def test_missing_lerobot_names_the_install_step():
 
 
 @pytest.fixture()
-def small_vectors(tmp_path):
-    """The guidance vectors alone, without index.json: a quick run that still has failing and unsupported ids."""
+def small_vectors(tmp_path, monkeypatch):
+    """The guidance vectors alone, without index.json: a quick run that still has failing and unsupported ids.
+    N-12 fails only in the weights and sampler files, outside this subset, so its diagnosis is set aside here
+    (a diagnosis of an id that does not fail stops the report, [TP-3])."""
+    monkeypatch.setattr(lerobot_notes, "DIAGNOSES", {k: v for k, v in lerobot_notes.DIAGNOSES.items() if k != "N-12"})
     d = tmp_path / "vectors"
     d.mkdir()
     shutil.copy(ROOT / "conformance" / "vectors" / "guidance.json", d / "guidance.json")
