@@ -13,7 +13,7 @@ from softrtc.reference._validate import check_choice, check_int
 
 from .policy import FlowPolicy, PolicyConfig
 
-__all__ = ["ARCHS", "CHUNK_ROWS", "REFERENCE_ROWS", "TRAIN_METHODS", "BenchConfig", "make_policy"]
+__all__ = ["ARCHS", "CHUNK_ROWS", "REFERENCE_ROWS", "PUBLIC_ROWS", "TRAIN_METHODS", "BenchConfig", "make_policy"]
 
 # [B-2] Benchmark architecture (spec chapter P defaults) and a tiny one for smoke runs and tests.
 ARCHS = {
@@ -34,6 +34,8 @@ CHUNK_ROWS = {
 }
 # [B-4] Straightforward reference rows measured next to the fast path.
 REFERENCE_ROWS = ("naive", "train_soft_lam2")
+# [B-14] Rows also measured as the public release's guided sampler runs them, next to the fast path.
+PUBLIC_ROWS = ("inference_soft",)
 TRAIN_METHODS = ("none", "hard", "soft")
 
 # [B-5] Fast and straightforward chunks agree within this float32 tolerance: |a - b| <= ATOL + RTOL |b|.
@@ -43,8 +45,8 @@ ATOL = RTOL = 1e-4
 TRAIN_SAMPLER_LIMIT = 1.05
 NAIVE_VS_STRAIGHTFORWARD_LIMIT = 0.9
 SOFT_STEP_LIMIT = 1.03
-GUIDED_LIMIT_B1 = 1.7
-GUIDED_LIMIT = 2.0
+# Fast guided rows over the public-style guided sampler ([B-14]) at every batch size.
+GUIDED_VS_PUBLIC_LIMIT = 0.9
 
 
 

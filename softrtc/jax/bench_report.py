@@ -14,9 +14,10 @@ import numpy as np
 
 from softrtc._files import write_atomic
 
-from .bench_config import ARCHS, TRAIN_METHODS
+from .bench_config import (ARCHS, GUIDED_VS_PUBLIC_LIMIT, NAIVE_VS_STRAIGHTFORWARD_LIMIT, SOFT_STEP_LIMIT,
+                           TRAIN_METHODS, TRAIN_SAMPLER_LIMIT)
 
-__all__ = ["cpu_model", "format_table", "format_vjp_table", "write_json"]
+__all__ = ["cpu_model", "format_table", "format_ranges", "format_vjp_table", "read_result", "write_json"]
 
 
 
@@ -116,9 +117,12 @@ def _format_table(res: dict) -> str:
         k = r["key"]
         cells = "".join(f" {res['chunk'][b][k]['median_ms']:>10.3f} {res['chunk'][b][k]['ratio']:>6.2f}x"
                         for b in bs)
-        diffs = [res["agreement"][b][r["name"]]["max_abs_diff"] for b in bs
-                 if r["path"] == "fast" and r["name"] in res["agreement"][b]]
-        lines.append(f"{r['label']:<26s} {r['path']:<15s}{cells} {(f'{max(diffs):.1e}' if diffs else '-'):>12s}")
+        # Fast rows are checked under their name, public-style rows ([B-14]) under their key.
+        ak = r["name"] if r["path"] == "fast" else r["key"]
+        diffs = [res["agreement"][b][ak]["max_abs_diff"] for b in bs
+                 if r["path"] != "straightforward" and ak in res["agreement"][b]]
+        path = "public-style" if r["path"] == "public" else r["path"]
+        lines.append(f"{r['label']:<26s} {path:<15s}{cells} {(f'{max(diffs):.1e}' if diffs else '-'):>12s}")
     if res.get("vjp_cost"):
         lines += ["", "context (not targets)"]
         for b in bs:
@@ -149,6 +153,79 @@ def _format_table(res: dict) -> str:
             lines.append(f"  {'PASS' if t['pass'] else 'FAIL'}  [{t['id']}] {t['target']:<44s} {val}")
     lines.append(f"total {res['seconds']:.0f} s")
     return "\n".join(lines)
+
+
+def format_ranges(results: list) -> str:
+    """The ratios of [B-9] over several runs of ``run_benchmark`` as a Markdown table ([B-15]).
+
+    Per ratio and batch size the smallest and largest value over the runs
+    (a single value for one run), and the target; the guided samplers over
+    naive is context, not a target ([B-9]). Every result must hold the batch
+    sizes of the first; a result without a key the table reads raises
+    ``ValueError`` naming the key.
+    """
+    if not isinstance(results, (list, tuple)) or not results:
+        raise ValueError("results must be a non-empty list of run_benchmark results")
+    for i, res in enumerate(results):
+        _formatted("run_benchmark", lambda r: "", res, _RUNTIME_KEYS)
+        if list(res["chunk"]) != list(results[0]["chunk"]):
+            raise ValueError(f"results[{i}] must have the batch sizes of results[0] {list(results[0]['chunk'])}, "
+                             f"got {list(res['chunk'])}")
+    return _formatted("run_benchmark", lambda _: _format_ranges(results), results[0], _RUNTIME_KEYS)
+
+
+def _ratio_rows() -> list:
+    """(label, function of a batch size's chunk stats -> ratio, target) of the range table."""
+    def largest(ch, keys, over):
+        return max(ch[k]["median_ms"] for k in keys) / ch[over]["median_ms"]
+    return [
+        ("training-time samplers / naive", lambda ch: largest(ch, ("train_hard", "train_soft_lam1",
+                                                                    "train_soft_lam2"), "naive"),
+         f"{TRAIN_SAMPLER_LIMIT:.2f}"),
+        ("naive / straightforward naive", lambda ch: largest(ch, ("naive",), "naive/straightforward"),
+         f"{NAIVE_VS_STRAIGHTFORWARD_LIMIT:.2f}"),
+        ("guided samplers / public-style guided", lambda ch: largest(ch, ("inference_hard", "inference_soft"),
+                                                                     "inference_soft/public"),
+         f"{GUIDED_VS_PUBLIC_LIMIT:.2f}"),
+        ("guided samplers / naive (context)", lambda ch: largest(ch, ("inference_hard", "inference_soft"), "naive"),
+         "-"),
+    ]
+
+
+def _span(values: list) -> str:
+    lo, hi = min(values), max(values)
+    return f"{lo:.2f}" if f"{lo:.2f}" == f"{hi:.2f}" else f"{lo:.2f}-{hi:.2f}"
+
+
+def _format_ranges(results: list) -> str:
+    bs = list(results[0]["chunk"])
+    env = results[0]["environment"]
+    lines = [f"| ratio over {len(results)} run{'s' if len(results) > 1 else ''} ({_machine(env)}) | "
+             + " | ".join(f"batch {b}" for b in bs) + " | target |",
+             "|---|" + "---|" * len(bs) + "---|"]
+    for label, ratio, target in _ratio_rows():
+        cells = [_span([ratio(r["chunk"][b]) for r in results]) for b in bs]
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {target} |")
+    steps = [r["train_step"]["soft_over_hard"] for r in results if r.get("train_step")]
+    if steps:
+        lines.append(f"| soft / hard training step (batch {results[0]['train_step']['batch']}) | {_span(steps)} | "
+                     + " | " * (len(bs) - 1) + f"{SOFT_STEP_LIMIT:.2f} |")
+    return "\n".join(lines)
+
+
+def read_result(path: str | os.PathLike) -> dict:
+    """A result file written by :func:`write_json` ([B-10]), checked to be one of ``run_benchmark``."""
+    if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
+        raise ValueError(f"path must name an existing result file, got {path!r}")
+    try:
+        with open(path, encoding="utf-8") as f:
+            res = json.load(f)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{os.fspath(path)} is not a JSON result file ({exc})") from None
+    if not isinstance(res, dict) or any(k not in res for k in _RUNTIME_KEYS):
+        raise ValueError(f"{os.fspath(path)} is not a result of softrtc bench runtime "
+                         f"(it lacks some of the keys {list(_RUNTIME_KEYS)})")
+    return res
 
 
 def _delays_of(cfg: dict) -> list:

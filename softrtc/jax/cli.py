@@ -1,7 +1,7 @@
-"""`softrtc bench runtime`, `softrtc bench vjp` and the JAX step of `softrtc demo`; registered by softrtc/cli.py.
+"""`softrtc bench runtime`, `vjp`, `table` and the JAX step of `softrtc demo`; registered by softrtc/cli.py.
 
-``add_subparsers(subparsers)`` adds ``bench`` with the subcommands ``runtime``
-and ``vjp`` (spec/32-runtime-bench.md, chapter B). ``demo()`` is a quick check of the JAX
+``add_subparsers(subparsers)`` adds ``bench`` with the subcommands ``runtime``,
+``vjp`` and ``table`` (spec/32-runtime-bench.md, chapter B). ``demo()`` is a quick check of the JAX
 twin: the conformance vectors of the samplers and guidance against the JAX
 adapter, and fast against straightforward chunks of a small flow policy.
 """
@@ -68,8 +68,8 @@ def add_subparsers(subparsers) -> None:
     _common_options(rt, "row", "runs/bench_runtime.json")
     rt.add_argument("--path", choices=("fast", "straightforward"), default="fast",
                     help="implementation of the method rows (default fast, which also measures the straightforward "
-                         "naive and train-soft samplers as rows of their own; straightforward measures the six "
-                         "method rows on that path only)")
+                         "naive and train-soft samplers and the public-style guided soft sampler as rows of their "
+                         "own; straightforward measures the six method rows on that path only)")
     rt.add_argument("--train-batch", type=int_in("value", 1, 1 << 16), default=32, help="batch size of the training steps, 1 .. 65536 (default 32)")
     rt.add_argument("--train-calls", type=int_in("value", 0, 10**7), default=50,
                     help="timed training steps per method (default 50; 0 skips them)")
@@ -80,6 +80,12 @@ def add_subparsers(subparsers) -> None:
                     "(spec/32-runtime-bench.md, [B-12])")
     _common_options(vj, "variant", "runs/bench_vjp.json")
     vj.set_defaults(func=run_vjp)
+    tb = sub.add_parser(
+        "table", help="the table of a `bench runtime` result file, and the ratio ranges over several "
+                      "(spec/32-runtime-bench.md, [B-15])")
+    tb.add_argument("results", nargs="+", metavar="RESULT.json",
+                    help="result files written by `softrtc bench runtime --out`; the first one's table is printed")
+    tb.set_defaults(func=run_table)
 
 
 def _run(args, run, fmt, **extra):
@@ -131,6 +137,21 @@ def run_vjp(args) -> int:
     if isinstance(res, int):
         return res
     return 0 if all(a["ok"] for per_b in res["agreement"].values() for a in per_b.values()) else 1
+
+
+def run_table(args) -> int:
+    """Print the table of the first result file and the ratio ranges over all of them ([B-15]); no JAX work."""
+    from .bench_report import format_ranges, format_table, read_result
+
+    prog = getattr(args, "_prog", "softrtc bench table")
+    try:
+        results = [read_result(p) for p in args.results]
+        print(format_table(results[0]))
+        print()
+        print(format_ranges(results))
+    except ValueError as exc:
+        return command_error(prog, str(exc))
+    return 0
 
 
 def demo() -> int:

@@ -23,9 +23,12 @@ def result():
 
 
 def test_rows_and_json_structure(result, tmp_path):
-    """B-1, B-10: every method row plus the straightforward naive and train-soft rows, per batch size."""
+    """B-1, B-10, B-14: every method row plus the straightforward naive and train-soft rows and the public-style
+    guided soft row, per batch size."""
     keys = [r["key"] for r in result["rows"]]
-    assert keys == list(bench.CHUNK_ROWS) + ["naive/straightforward", "train_soft_lam2/straightforward"]
+    assert keys == list(bench.CHUNK_ROWS) + ["naive/straightforward", "train_soft_lam2/straightforward",
+                                             "inference_soft/public"]
+    assert [r["path"] for r in result["rows"]][-3:] == ["straightforward", "straightforward", "public"]
     assert sorted(result["chunk"]) == ["1", "4"]
     for per_b in result["chunk"].values():
         assert list(per_b) == keys
@@ -78,9 +81,10 @@ def test_ratios_are_against_naive_of_the_same_run(result):
 
 
 def test_fast_and_straightforward_agree(result):
-    """B-3, B-4, B-5: the fast path gives the straightforward chunks within float32 tolerance."""
+    """B-3, B-4, B-5, B-14: the fast path and the public-style guided row give the straightforward chunks within
+    float32 tolerance."""
     for per_b in result["agreement"].values():
-        assert sorted(per_b) == sorted(bench.CHUNK_ROWS)
+        assert sorted(per_b) == sorted([*bench.CHUNK_ROWS, "inference_soft/public"])
         for a in per_b.values():
             assert a["ok"] and a["max_abs_diff"] <= 1e-4
     assert [t for t in result["targets"] if t["id"] == "B-5"][0]["pass"]
@@ -94,16 +98,22 @@ def test_one_compilation_per_batch_size(result):
 
 
 def test_targets_and_table(result):
-    """B-8, B-9, B-10: every target is reported with PASS/FAIL and printed."""
+    """B-8, B-9, B-10, B-14: every target is reported with PASS/FAIL and printed; the guided target is the slower
+    fast guided row over the public-style guided row, at most 0.9x at every batch size."""
     names = [t["target"] for t in result["targets"]]
     for B in (1, 4):
         assert f"train-time samplers / naive, batch {B}" in names
         assert f"naive / straightforward naive, batch {B}" in names
-        assert f"guided samplers / naive, batch {B}" in names
-    assert "soft / hard training step" in names
-    limits = {t["target"]: t["limit"] for t in result["targets"]}
-    assert limits["guided samplers / naive, batch 1"] == 1.7 and limits["guided samplers / naive, batch 4"] == 2.0
+        assert f"guided samplers / public-style guided, batch {B}" in names
+    assert "soft / hard training step" in names and not any("guided samplers / naive" in n for n in names)
+    by_name = {t["target"]: t for t in result["targets"]}
+    for B in ("1", "4"):
+        t, ch = by_name[f"guided samplers / public-style guided, batch {B}"], result["chunk"][B]
+        slower = max(ch["inference_hard"]["median_ms"], ch["inference_soft"]["median_ms"])
+        assert t["limit"] == 0.9 and t["value"] == pytest.approx(slower / ch["inference_soft/public"]["median_ms"])
+        assert t["pass"] == (t["value"] <= 0.9)
     table = bench_report.format_table(result)
+    assert "public-style" in table
     assert table.count("PASS") + table.count("FAIL") == len(result["targets"])
     assert "max|fast-sf|" in table and "training step" in table
 
@@ -312,3 +322,67 @@ def test_agreement_checks_the_timed_delays(monkeypatch):
     bench.check_agreement(config, policy, 1, ("naive",))
     bench.check_agreement(bench.BenchConfig(**TINY, delay=2), policy, 1, ("naive",))
     assert seen == [[0, 1, 2, 3, 4], [2]]
+
+
+def test_public_style_guided_row_runs_as_the_release_does(monkeypatch):
+    """B-14, G-2: the public-style guided row is a scanned loop (the straightforward row is unrolled), computes the
+    time conditioning inside every step (one sin-cos embedding in the loop body, not a precomputed table), and
+    is traced with plain autodiff for every block of the pull-back; its chunks equal the straightforward ones."""
+    from softrtc.jax import bench_config
+
+    cfg = bench.BenchConfig(arch="tiny", calls=1, warmup=1, batch_sizes=(1,), train_calls=0, num_steps=3)
+    policy = bench.make_policy(cfg)
+    graphdef, treedef, leaves = bench._params(policy)
+    obs, noise, prior = bench_config.inputs(cfg, policy, 2, 1)[0]
+    switches = []
+    real = bench.autodiff_vjps
+
+    def spy(**kw):
+        switches.append(kw)
+        return real(**kw)
+
+    monkeypatch.setattr(bench, "autodiff_vjps", spy)
+    public = bench._public_guided_fn(graphdef, treedef, "inference_soft", 4, 3)
+    plain = bench._straightforward_fn(graphdef, treedef, "inference_soft", None, 4, 3)
+    d = jnp.int32(2)
+    pub_txt = str(jax.make_jaxpr(public)(leaves, None, obs, noise, prior, d))
+    sf_txt = str(jax.make_jaxpr(plain)(leaves, None, obs, noise, prior, d))
+    assert switches == [{"layer_norm": True, "gelu": True}]
+    assert "scan" in pub_txt and "scan" not in sf_txt
+    # The time embedding's sin: once in the scanned body, once per unrolled step of the straightforward row.
+    assert pub_txt.count(" sin ") == 1 and sf_txt.count(" sin ") == 3
+    for dd in range(5):
+        a = np.asarray(public(leaves, None, obs, noise, prior, jnp.int32(dd)))
+        b = np.asarray(plain(leaves, None, obs, noise, prior, jnp.int32(dd)))
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+
+
+def test_bench_table_command_and_ranges(tmp_path, capsys, result):
+    """B-15, N-11: `softrtc bench table` prints the first file's table and the ranges over all files, by hand:
+    two runs whose guided ratios are 0.8 and 0.85 print 0.80-0.85; a file that is no result is one error line."""
+    import copy
+
+    from softrtc.cli import main
+
+    a, b = copy.deepcopy(result), copy.deepcopy(result)
+    for res, ratio in ((a, 0.8), (b, 0.85)):
+        for ch in res["chunk"].values():
+            ch["inference_hard"]["median_ms"] = ch["inference_soft"]["median_ms"] = 2.0
+            ch["inference_soft/public"]["median_ms"] = 2.0 / ratio
+    pa, pb = tmp_path / "a.json", tmp_path / "b.json"
+    bench_report.write_json(a, pa)
+    bench_report.write_json(b, pb)
+    assert main(["bench", "table", str(pa), str(pb)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(bench_report.format_table(bench_report.read_result(pa)))
+    line = [ln for ln in out.splitlines() if ln.startswith("| guided samplers / public-style guided |")][0]
+    assert line == "| guided samplers / public-style guided | 0.80-0.85 | 0.80-0.85 | 0.90 |"
+    one = bench_report.format_ranges([bench_report.read_result(pa)])
+    assert "| guided samplers / public-style guided | 0.80 | 0.80 | 0.90 |" in one
+    (tmp_path / "bad.json").write_text('{"chunk": {}}')
+    assert main(["bench", "table", str(tmp_path / "bad.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith(f"softrtc bench table: error: {tmp_path / 'bad.json'} is not a result of softrtc bench "
+                          "runtime")
+    with pytest.raises(ValueError, match=r"^results\[1\] must have the batch sizes of results\[0\]"):
+        bench_report.format_ranges([a, dict(b, chunk={"1": b["chunk"]["1"]})])
