@@ -84,7 +84,9 @@ class ArmPolicy:
         """The policy's :class:`~softrtc.jax.fast_chunks.FastChunks` ([S-6]), built on first use (the tables of
         every delay depend on the parameters and the window only)."""
         if self._fast is None:
-            self._fast = FastChunks(self.model, self.method, self.s, self.T, self.window)
+            # Only train_soft has a window ([W-7]); a window given to another method is checked against H ([S-8]).
+            window = self.window if self.method == "train_soft" else None
+            self._fast = FastChunks(self.model, self.method, self.s, self.T, window)
         return self._fast
 
     def _obs(self, obs) -> np.ndarray:
