@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 import flax.nnx as nnx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _validate as v
 from .methods import (METHODS, _check_tables, delay_rows, generate_chunk_conditioned, generate_chunk_from_row,
@@ -268,7 +269,10 @@ class FastChunks:
         return not v.is_traced(d) and jnp.ndim(d) == 0
 
     def _delay(self, d) -> int:
-        return int(v.int_value("d", d, 0, self.max_delay))
+        # A concrete integer array scalar is read once on the host (no device round trip per check).
+        if isinstance(d, (jax.Array, np.ndarray)) and d.ndim == 0 and jnp.issubdtype(d.dtype, jnp.integer):
+            d = int(d)
+        return v.check_int("d", d, 0, self.max_delay)
 
     def _key(self, key, obs):
         if not isinstance(key, jax.Array) or not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
