@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -386,3 +387,30 @@ def test_bench_table_command_and_ranges(tmp_path, capsys, result):
                           "runtime")
     with pytest.raises(ValueError, match=r"^results\[1\] must have the batch sizes of results\[0\]"):
         bench_report.format_ranges([a, dict(b, chunk={"1": b["chunk"]["1"]})])
+
+
+RESULTS = sorted((Path(__file__).resolve().parents[2] / "results" / "bench").glob("runtime-*.json"))
+README_BEGIN = "<!-- softrtc bench table results/bench/runtime-*.json -->"
+README_END = "<!-- end of softrtc bench table -->"
+
+
+def readme_block(results) -> str:
+    """What the README's runtime section shows between its markers: `softrtc bench table`'s output ([B-15])."""
+    return (f"{README_BEGIN}\n```\n{bench_report.format_table(results[0])}\n```\n\n"
+            f"{bench_report.format_ranges(results)}\n{README_END}")
+
+
+def test_readme_runtime_tables_are_the_committed_results():
+    """B-15, B-10, B-9: the README's benchmark table and ratio ranges are what `softrtc bench table` makes of the
+    result files committed under results/bench/; the committed runs check their chunks and have every row."""
+    assert len(RESULTS) >= 2, RESULTS
+    results = [bench_report.read_result(p) for p in RESULTS]
+    for res in results:
+        assert res["config"]["arch"] == "benchmark" and res["config"]["path"] == "fast"
+        assert [t for t in res["targets"] if t["id"] == "B-5"][0]["pass"]
+        assert [r["key"] for r in res["rows"]][-1] == "inference_soft/public"
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    i, j = readme.find(README_BEGIN), readme.find(README_END)
+    assert 0 <= i < j, "the README lacks the markers of the benchmark tables"
+    assert readme[i:j + len(README_END)] == readme_block(results)
+
