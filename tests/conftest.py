@@ -6,6 +6,13 @@ settings.register_profile("softrtc", deadline=None, max_examples=60,
                           suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "softrtc"))
 
+# Compiled programs ([KC-1]) go to a folder of this checkout's test cache, not the user's: a run of the
+# tests neither reads programs another checkout or version left in ~/.cache nor leaves its own there.
+# Set SOFTRTC_JAX_CACHE to choose another folder (or "off").
+os.environ.setdefault("SOFTRTC_JAX_CACHE",
+                      os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".pytest_cache",
+                                   "softrtc-jax"))
+
 
 # The one skip that SOFTRTC_REQUIRE_ALL=1 tolerates: the benchmark levels are data outside this
 # repository. Tests skip with exactly this reason; any other skip (a missing package) fails the run.

@@ -50,7 +50,8 @@ _OFF = ("", "0", "off", "none", "false", "no")
 MIN_COMPILE_S = 0.5
 # [KC-2] bound of the XLA layer; setting it turns on JAX's eviction and its file lock.
 MAX_CACHE_BYTES = 8 << 30
-_PROGRAM_FORMAT = 1
+# 2: stored programs are compiled with layer 1 off (a layer-1 hit does not serialise whole, [KC-3]).
+_PROGRAM_FORMAT = 2
 
 _state: dict = {"dir": None, "configured": False}
 _memory: dict = {}
@@ -190,6 +191,25 @@ class CompiledProgram:
         return self.compiled(*flat)
 
 
+def _compile(lowered, *, bypass_layer1: bool):
+    """Compile ``lowered``; with ``bypass_layer1`` JAX's persistent cache is neither read nor written.
+
+    XLA:CPU executables that JAX loaded from its persistent cache serialise without some of their
+    kernels (jaxlib 0.9: the reloaded file fails with "Function ... not found"), so a program meant
+    for layer 2 is always compiled from its lowering ([KC-3])."""
+    if not bypass_layer1:
+        return lowered.compile()
+    # JAX decides once per process whether its cache is in use; a reset makes it read the flag again.
+    before = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    _reset_jax_cache()
+    try:
+        return lowered.compile()
+    finally:
+        jax.config.update("jax_enable_compilation_cache", before)
+        _reset_jax_cache()
+
+
 def _global(x, sharding):
     """A global array of ``sharding`` built from this process's full copy ``x`` (every process holds the same)."""
     host = np.asarray(jax.device_get(x))
@@ -243,7 +263,7 @@ def compile_program(name: str, fn: Callable, args: tuple, in_shardings: Sequence
             return fn(*jax.tree.unflatten(treedef, xs))
 
         jitted = jax.jit(flat_fn, in_shardings=tuple(flat_sh), out_shardings=out_sharding)
-        compiled = jitted.lower(*avals).compile()
+        compiled = _compile(jitted.lower(*avals), bypass_layer1=path is not None)
         source = "compiled"
         if path is not None:
             try:

@@ -114,6 +114,36 @@ def test_program_cache_round_trip_and_damaged_entry(tmp_path, restore_cache):
         p1(args[0], args[1])
 
 
+def test_program_stored_after_a_layer1_hit_runs_from_disk(tmp_path, restore_cache):
+    """KC-2, KC-3: a program compiled again after its layer-2 file was removed (layer 1 warm from the
+    first compile, with no size threshold) is stored whole: loaded from disk it runs and gives the
+    outputs of a plain jax.jit. (An executable JAX reloads from layer 1 serialises without some of its
+    kernels; storing it gives a file that fails with "Function ... not found".)"""
+    cache.enable_compile_cache(tmp_path / "cc")
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # store even this small program
+    fn, args, shard, out = _program(tmp_path)
+
+    def scanned(params, keys, d):  # loops and fusions, as a rollout has
+        def body(c, _):
+            c = jnp.where(c > 0, jnp.sin(c) * params["w"] + c, jnp.cos(c) - d)
+            return c, c.sum()
+        return jax.lax.scan(body, fn(params, keys, d)["x"], None, length=7)
+
+    want = jax.jit(scanned)(*args)
+    # Without the bypass of [KC-3] this first compile also fills layer 1, and the second one reloads it.
+    assert cache.compile_program("s", scanned, args, shard, out).source == "compiled"
+    for f in (tmp_path / "cc" / "programs").glob("s-*.bin"):
+        f.unlink()
+    cache.clear_memory()
+    assert cache.compile_program("s", scanned, args, shard, out).source == "compiled"
+    cache.clear_memory()
+    p = cache.compile_program("s", scanned, args, shard, out)
+    assert p.source == "disk"
+    got = p(*args)
+    np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(got[1]), np.asarray(want[1]), rtol=1e-6)
+
+
 def test_program_key_changes_with_every_input(restore_cache):
     """KC-3: the key covers name, config, argument shapes, dtypes and shardings and the source digest."""
     mesh = Mesh(np.array(jax.devices()), ("env",))
