@@ -98,3 +98,18 @@ def write_atomic(path, write: Callable[[IO], None], *, binary: bool = False, pre
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+CACHE_ENV = "SOFTRTC_JAX_CACHE"
+_CACHE_OFF = ("", "0", "off", "none", "false", "no")
+
+
+def default_cache_dir() -> Path | None:
+    """The folder of compiled JAX programs ([KC-1], [CF-17]): ``$SOFTRTC_JAX_CACHE`` (``None`` when it says
+    ``off``, ``0``, ``none``, ``false``, ``no`` or is empty), else ``$XDG_CACHE_HOME/softrtc/jax``, else
+    ``~/.cache/softrtc/jax``. JAX's own persistent cache lives in its ``xla`` subfolder."""
+    env = os.environ.get(CACHE_ENV)
+    if env is not None:
+        return None if env.strip().lower() in _CACHE_OFF else Path(env.strip()).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base).expanduser() / "softrtc" / "jax"

@@ -16,7 +16,6 @@ import importlib
 import importlib.util
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 
@@ -24,14 +23,17 @@ from .reference import rule_from_dict, window_from_dict
 
 
 def _use_compilation_cache() -> None:
-    """Keep compiled kernels across runs in ``$XDG_CACHE_HOME/softrtc/jax`` (``~/.cache/softrtc/jax``) unless
-    the user chose a cache (JAX_COMPILATION_CACHE_DIR) or turned it off (SOFTRTC_JAX_CACHE=0) ([CF-17])."""
-    if os.environ.get("SOFTRTC_JAX_CACHE") == "0" or os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+    """Keep compiled kernels across runs in the ``xla`` folder of softrtc's JAX cache ([KC-1]:
+    ``$SOFTRTC_JAX_CACHE``, else ``~/.cache/softrtc/jax``; ``SOFTRTC_JAX_CACHE=off`` turns it off)
+    unless the user chose JAX's own (``JAX_COMPILATION_CACHE_DIR``) ([CF-17])."""
+    from softrtc._files import default_cache_dir, unwritable_reason
+
+    root = default_cache_dir()
+    if root is None or os.environ.get("JAX_COMPILATION_CACHE_DIR") or unwritable_reason(root) is not None:
         return
     import jax
 
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    jax.config.update("jax_compilation_cache_dir", str(Path(base) / "softrtc" / "jax"))
+    jax.config.update("jax_compilation_cache_dir", str(root / "xla"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # most kernels here compile in ms
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 

@@ -54,7 +54,9 @@ def int_value(name: str, value, lo: int | None = None, hi: int | None = None, *,
     # The value becomes int32: a bound the caller left open is int32's own, so nothing wraps.
     lo = INT32_MIN if lo is None else lo
     hi = INT32_MAX if hi is None else hi
-    return jnp.asarray(check_int(name, value, lo, hi), dtype)
+    # A concrete value stays on the host (a NumPy scalar): jit and jnp take it as they take an array,
+    # and no device buffer is made for each checked scalar.
+    return np.asarray(check_int(name, value, lo, hi), dtype)
 
 
 def real_value(name: str, value, lo: float | None = None, hi: float | None = None,
@@ -74,7 +76,7 @@ def real_value(name: str, value, lo: float | None = None, hi: float | None = Non
         f32 = np.float32(check_real(name, value, lo, hi, lo_open, hi_open))
     if not np.isfinite(f32):
         raise ValueError(f"{name} must be a finite real number within float32 range, got {value!r}")
-    return jnp.asarray(f32)
+    return np.asarray(f32)
 
 
 def real_dtype(name: str, value, what: str = "be a real numeric array (integer or float)"):

@@ -38,14 +38,12 @@ from typing import Any, Callable, Sequence
 import jax
 import numpy as np
 
-from softrtc._files import unwritable_reason, write_atomic
+from softrtc._files import CACHE_ENV, default_cache_dir, unwritable_reason, write_atomic
 
 __all__ = ["CACHE_ENV", "MIN_COMPILE_S", "MAX_CACHE_BYTES", "default_cache_dir", "enable_compile_cache",
            "cache_dir", "source_fingerprint", "program_key", "compile_program", "CompiledProgram",
            "clear_memory"]
 
-CACHE_ENV = "SOFTRTC_JAX_CACHE"
-_OFF = ("", "0", "off", "none", "false", "no")
 # [KC-2] programs that compile faster than this are not worth a file.
 MIN_COMPILE_S = 0.5
 # [KC-2] bound of the XLA layer; setting it turns on JAX's eviction and its file lock.
@@ -55,16 +53,6 @@ _PROGRAM_FORMAT = 2
 
 _state: dict = {"dir": None, "configured": False}
 _memory: dict = {}
-
-
-def default_cache_dir() -> Path | None:
-    """The cache folder of [KC-1]: ``$SOFTRTC_JAX_CACHE`` (``None`` when it says ``off``), else the
-    per-user ``$XDG_CACHE_HOME/softrtc/jax`` (``~/.cache/softrtc/jax`` without ``XDG_CACHE_HOME``)."""
-    env = os.environ.get(CACHE_ENV)
-    if env is not None:
-        return None if env.strip().lower() in _OFF else Path(env.strip()).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base).expanduser() / "softrtc" / "jax"
 
 
 def enable_compile_cache(path: str | os.PathLike | None | bool = True) -> Path | None:
