@@ -16,7 +16,8 @@ from softrtc._files import check_out_file
 from softrtc.reference._validate import check_int
 
 from ._checks import check_number
-from .env import ACTION_DIM, NUM_JOINTS, NUM_OBJECTS, OBS_DIM, ArmConfig, ArmSortEnv, _check_env_config
+from .env import ACTION_DIM, NUM_JOINTS, NUM_OBJECTS, OBS_DIM, ArmConfig, ArmSortEnv
+from .geometry import _check_env_config
 from .expert import ExpertConfig, ScriptedExpert
 
 __all__ = ["generate_demos", "rollout_noisy_episode", "load_demos"]

@@ -22,7 +22,8 @@ from softrtc.jax import executor as jexec
 from softrtc.reference import metrics as rmetrics
 from softrtc.reference._validate import check_int
 
-from .env import ACTION_DIM, ArmConfig, ArmSortEnv, NUM_OBJECTS, _check_env_config
+from .env import ACTION_DIM, ArmConfig, ArmSortEnv, NUM_OBJECTS
+from .geometry import _check_env_config
 
 __all__ = ["EpisodeRecord", "run_simulated_episode", "episode_metrics", "JOINT_DIMS"]
 

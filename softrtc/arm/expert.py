@@ -26,10 +26,9 @@ from .env import (
     OBS_SLICES,
     ArmConfig,
     ArmSortEnv,
-    _check_env_config,
-    _real_array,
     inverse_kinematics,
 )
+from .geometry import _check_env_config, _real_array
 
 __all__ = ["ExpertConfig", "ScriptedExpert", "run_expert_episode", "expert_success_rate"]
 

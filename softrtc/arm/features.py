@@ -8,7 +8,8 @@ import numpy as np
 
 from softrtc.reference._validate import real_array
 
-from .env import ACTION_DIM, NUM_OBJECTS, OBJECT_TARGET_BOX, OBS_DIM, OBS_SLICES, ArmConfig, _validate_config
+from .env import ACTION_DIM, NUM_OBJECTS, OBJECT_TARGET_BOX, OBS_DIM, OBS_SLICES, ArmConfig
+from .geometry import _validate_config
 
 __all__ = ["FEATURE_DIM", "action_bounds", "policy_features", "Normalizer"]
 

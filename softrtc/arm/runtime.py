@@ -28,7 +28,8 @@ from softrtc.jax import executor as jexec
 
 from ._checks import check_number
 from .clock import WallClock
-from .env import ACTION_DIM, ArmConfig, ArmSortEnv, _check_env_config
+from .env import ACTION_DIM, ArmConfig, ArmSortEnv
+from .geometry import _check_env_config
 from .executor import EpisodeRecord
 
 __all__ = ["RuntimeConfig", "run_realtime_episode", "predict_delay", "jitter_summary"]
