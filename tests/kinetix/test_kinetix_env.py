@@ -101,11 +101,12 @@ def test_installed_package_has_no_default_levels_dir(tmp_path, monkeypatch):
     """K-2, K-3: outside a source checkout (no pyproject.toml above the package) there is no default
     levels directory; a call without levels_dir says so and asks for levels_dir / --levels-dir."""
     from softrtc.kinetix import env as kenv
+    from softrtc.kinetix import levels
 
     site = tmp_path / "lib" / "python3" / "site-packages" / "softrtc" / "kinetix"
     site.mkdir(parents=True)
     (tmp_path / "lib" / "shared" / "kinetix-levels").mkdir(parents=True)  # the old fallback: never used
-    monkeypatch.setattr(kenv, "__file__", str(site / "env.py"))
+    monkeypatch.setattr(levels, "__file__", str(site / "levels.py"))  # where the lookup lives
     assert kenv.project_root() is None and kenv.default_levels_dir() is None
     with pytest.raises(FileNotFoundError, match=r"installed package .* pass levels_dir= \(command line: --levels-dir\)"):
         kenv.resolve_levels_dir(None, ("grasp_easy",))
