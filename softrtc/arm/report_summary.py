@@ -1,0 +1,141 @@
+"""Summaries of the arm experiment's result files: per row, delay and scope, bootstrap statistics and
+paired tests against Train Hard RTC ([AX-6], [AX-7]).
+
+:func:`load_results` reads a task folder (``manifest.json``, ``episodes/*.csv``,
+``prior_error.json``, ``finetunes``); :func:`summarize` turns it into the
+numbers the verdicts, tables and plots of :mod:`softrtc.arm.report` quote.
+Deterministic: every bootstrap uses seed 0.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .experiment import H, read_episodes
+from .paired_stats import cluster_bootstrap, mcnemar_exact, paired_difference
+
+__all__ = ["load_results", "summarize", "METRICS", "RESAMPLES"]
+
+METRICS = ("success", "completion", "D1", "D2", "D3", "boundary", "mean_abs_action")
+RESAMPLES = 2000
+
+
+def load_results(folder) -> dict:
+    """``{"manifest", "cells": {(row, seed, delay): [episode dicts]}, "prior", "finetunes"}`` of a task folder."""
+    folder = Path(folder)
+    if not (folder / "manifest.json").is_file():
+        raise ValueError(f"folder must hold an arm experiment's results (manifest.json), got {str(folder)!r}")
+    manifest = json.loads((folder / "manifest.json").read_text())
+    # Cells from the episode files themselves (``<eval key>_s<seed>_d<delay>.csv``): every row whose eval key
+    # names a file has that cell, so rows that share episodes ([AX-3]) share them here too.
+    by_key = {}
+    for f in sorted((folder / "episodes").glob("*.csv")):
+        key, seed, delay = f.stem.rsplit("_", 2)
+        by_key.setdefault(key, []).append((int(seed[1:]), int(delay[1:]), f))
+    cells, cache = {}, {}
+    for row, info in manifest["rows"].items():
+        for seed, delay, f in by_key.get(info["eval_key"], []):
+            if f not in cache:
+                cache[f] = read_episodes(f)
+            cells[(row, seed, delay)] = cache[f]
+    prior = json.loads((folder / "prior_error.json").read_text()) if (folder / "prior_error.json").is_file() else None
+    ft = json.loads((folder / "finetunes.json").read_text()) if (folder / "finetunes.json").is_file() else {}
+    for f in sorted((folder / "finetunes").glob("*.json")):
+        ft[f.stem] = json.loads(f.read_text())
+    return {"manifest": manifest, "cells": cells, "prior": prior, "finetunes": ft, "folder": str(folder)}
+
+
+def _seeds(res, row):
+    return sorted({s for (r, s, d) in res["cells"] if r == row})
+
+
+def _matrix(res, row, delays, metric, seeds=None):
+    """``[seeds, delays x episodes]`` of a metric (NaN where undefined); None when a delay is missing.
+
+    ``seeds`` restricts the rows to those fine-tuning seeds (the base's seed 0 is kept whatever it says).
+    """
+    seeds = _seeds(res, row) if seeds is None or _seeds(res, row) == [0] else \
+        [s for s in _seeds(res, row) if s in seeds]
+    if not seeds:
+        return None
+    # A seed counts for a scope only when it ran every delay of it with the same episodes as the others.
+    seeds = [s for s in seeds if all((row, s, d) in res["cells"] for d in delays)]
+    if not seeds:
+        return None
+    n = min(len(res["cells"][(row, s, d)]) for s in seeds for d in delays)
+    mats = []
+    for s in seeds:
+        parts = []
+        for d in delays:
+            eps = sorted(res["cells"][(row, s, d)], key=lambda e: e["episode"])[:n]
+            parts.append([float(e[metric]) for e in eps])
+        mats.append(np.concatenate(parts))
+    return np.stack(mats)
+
+
+def _delays_of(res, row):
+    return sorted({d for (r, s, d) in res["cells"] if r == row})
+
+
+def summarize(res) -> dict:
+    """Per row: per delay, ``overall`` (every delay run) and ``high`` (two highest delays) stats of each metric.
+
+    Each value is ``{"mean", "lo", "hi", "n"}`` (bootstrap over seeds and
+    episodes); each row also has ``seeds`` and ``episodes`` (per delay), and
+    ``vs_hard``: paired tests against ``train_hard`` where both ran (McNemar
+    for success, paired bootstrap for the rest).
+    """
+    max_d = res["manifest"]["execute_horizon"]
+    max_d = min(max_d, H - max_d)
+    high = [max_d - 1, max_d]
+    out = {}
+    for row, _ in _rows_in_order(res["manifest"]):
+        ds = _delays_of(res, row)
+        if not ds:
+            continue
+        # Seeds that ran every delay of the row; the others still count in the scopes they complete.
+        seeds = [s for s in _seeds(res, row) if all((row, s, d) in res["cells"] for d in ds)] or _seeds(res, row)
+        n_eps = min(len(res["cells"][(row, s, d)]) for s in seeds for d in ds if (row, s, d) in res["cells"])
+        entry = {"delays": ds, "seeds": len(seeds), "episodes": n_eps, "per_delay": {}, "scopes": {}, "vs_hard": {}}
+        scopes = {f"d{d}": [d] for d in ds}
+        scopes["overall"] = ds
+        if all(d in ds for d in high):
+            scopes["high"] = high
+        for scope, dl in scopes.items():
+            stats = {}
+            for m in METRICS:
+                mat = _matrix(res, row, dl, m)
+                if mat is not None:
+                    stats[m] = cluster_bootstrap(mat, RESAMPLES, 0)
+            entry["scopes"][scope] = stats
+            if row != "train_hard" and any(r == "train_hard" for (r, s, d) in res["cells"]):
+                tests = {}
+                # Fine-tuned rows pair seed by seed: only the seeds both ran (the base pairs with every seed).
+                common = [x for x in _seeds(res, row) if x in _seeds(res, "train_hard")] or None
+                for m in METRICS:
+                    a, b = _matrix(res, row, dl, m, common), _matrix(res, "train_hard", dl, m, common)
+                    if a is None or b is None or a.shape[1] != b.shape[1] or \
+                            (a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0])):
+                        continue
+                    tests[m] = paired_difference(a, b, RESAMPLES, 0)
+                    if m == "success":
+                        tests["mcnemar"] = mcnemar_exact(a, b)
+                entry["vs_hard"][scope] = tests
+        out[row] = entry
+    return out
+
+
+def _rows_in_order(manifest):
+    """``(name, info)`` of every row in the experiment's order (the manifest stores it)."""
+    return [(r, manifest["rows"][r]) for r in manifest.get("order", sorted(manifest["rows"]))]
+
+
+def _get(summary, row, scope, metric):
+    return summary.get(row, {}).get("scopes", {}).get(scope, {}).get(metric)
+
+
+def _vs(summary, row, scope, metric):
+    return summary.get(row, {}).get("vs_hard", {}).get(scope, {}).get(metric)
