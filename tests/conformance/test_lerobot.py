@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("lerobot")
 
-from softrtc.conformance import report, runner  # noqa: E402
+from softrtc.conformance import report, report_case, runner  # noqa: E402
 from softrtc.conformance.adapter import ALTERNATES  # noqa: E402
 from softrtc.conformance.adapters import lerobot_notes  # noqa: E402
 from softrtc.conformance.adapters.lerobot import ADAPTER, INSTALL_HINT, RTCConfig, RTCProcessor, _schedule  # noqa: E402
@@ -95,7 +95,7 @@ def test_guided_chunks_are_the_reference_without_the_field_vjp(vector_files):
     form = ALTERNATES["guided_sample"]
     for case in cases:
         a = case["args"]
-        args = [report._argument(k, a[k], data, form.fn, True) for k in form.fn.args]
+        args = [report_case._argument(k, a[k], data, form.fn, True) for k in form.fn.args]
         chunk, _ = getattr(ADAPTER, form.name)(*args)
         chunk = chunk.numpy().astype(np.float64)
         params = data["fields"][a["field"]]["params"]
