@@ -7,7 +7,8 @@ with seed ``seed``, then Train Hard and Train Soft RTC fine-tunes from the base 
 with seeds ``seed + 1`` and ``seed + 2`` at a third of the learning rate; delays uniform on
 ``0 .. min(s, H - s)``, the default window of [W-7]; AdamW (weight decay 1e-4 on kernels, clipping at 1),
 linear warm-up over ``min(200, steps // 10)`` steps then cosine decay to 5 % ([T-6]); batch 128, batches
-drawn without replacement per epoch. The network is :class:`softrtc.torch.policy.FlowPolicy`; inference uses
+drawn without replacement per epoch. The network is :class:`softrtc.torch.policy.FlowPolicy` with the JAX arm
+policy's architecture and sizes (chapter P, ``ARM_POLICY``); inference uses
 the precomputed-conditioning samplers of ``softrtc.torch.sampler`` ([PT-6]).
 
 Evaluation (:func:`evaluate`): every policy (the PyTorch ones and the shipped JAX checkpoints) runs in the
@@ -40,8 +41,10 @@ from .training import RTCObjective
 __all__ = ["ARM_POLICY", "TrainRecipe", "ArmTorchPolicy", "train_policy", "train_arm_policies", "evaluate",
            "summarize", "format_table", "write_results", "read_results", "OBJECTIVE"]
 
-# The PyTorch policy's sizes for the arm: about the JAX arm policy's width and depth.
-ARM_POLICY = PolicyConfig(horizon=10, width=128, channel_hidden=256, token_hidden=32, num_layers=2, time_dim=64)
+# The PyTorch policy for the arm: the JAX arm policy's network (chapter P, adaLN) with its sizes ([A-17]), so
+# the comparison is at equal architecture.
+ARM_POLICY = PolicyConfig(horizon=10, width=128, channel_hidden=256, token_hidden=32, num_layers=2,
+                          architecture="adaln")
 OBJECTIVE = {"naive": "none", "train_hard": "hard", "train_soft": "soft"}
 STUDY = ("naive", "train_hard", "train_soft")
 LABELS = {"naive": "Base", "train_hard": "Train Hard RTC", "train_soft": "Train Soft RTC"}
@@ -212,11 +215,19 @@ class ArmTorchPolicy:
 
 
 def _save(path: Path, model: FlowPolicy, meta: dict) -> None:
-    torch.save({"state_dict": model.state_dict(), "meta": meta}, path)
+    torch.save({"state_dict": model.state_dict(), "meta": {**meta, "policy": dataclasses.asdict(model.config)}}, path)
+
+
+def _trained_with(path: Path) -> dict | None:
+    """The policy config a saved policy was trained with (None for a file that does not record it)."""
+    return torch.load(path, weights_only=True)["meta"].get("policy")
 
 
 def _load(path: Path) -> tuple:
     blob = torch.load(path, weights_only=True)
+    if blob["meta"].get("policy") != dataclasses.asdict(ARM_POLICY):
+        raise ValueError(f"{str(path)!r} holds a policy trained with another network than ARM_POLICY "
+                         f"({blob['meta'].get('policy')}); retrain with `softrtc arm torch --retrain`")
     model = FlowPolicy(blob["meta"]["obs_dim"], 4, ARM_POLICY, generator=torch.Generator().manual_seed(0))
     model.load_state_dict(blob["state_dict"])
     return model, blob["meta"]
@@ -397,7 +408,10 @@ def run_experiment(out, work, recipe: TrainRecipe = TrainRecipe(), protocol: Pro
     t0 = time.perf_counter()
     work = Path(work)
     trained = None
-    if retrain or not all((work / f).is_file() for f in ("base.pt", "train_hard.pt", "train_soft.pt")):
+    files = [work / f for f in ("base.pt", "train_hard.pt", "train_soft.pt")]
+    # policies trained with another network (an earlier ARM_POLICY) are trained again
+    if retrain or not all(f.is_file() for f in files) \
+            or any(_trained_with(f) != dataclasses.asdict(ARM_POLICY) for f in files):
         trained = train_arm_policies(work, recipe, demos, progress)
     pols = {f"torch {LABELS[m]}": p for m, p in load_arm_policies(work).items()}
     jax_pols = load_jax()

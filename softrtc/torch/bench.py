@@ -39,7 +39,7 @@ from softrtc._files import write_atomic
 from . import _validate as v
 from .guidance import guided_sample
 from .methods import method_weights
-from .policy import FlowPolicy, PolicyConfig
+from .policy import ARCHITECTURES, FlowPolicy, PolicyConfig
 from .sampler import (conditioning_table, naive_sample, naive_sample_conditioned, rtc_sample, rtc_sample_conditioned,
                       step_conditioning)
 from .training import RTCObjective
@@ -48,12 +48,15 @@ from .weights import weight_table
 __all__ = ["ARCHS", "BenchConfig", "TARGETS", "run_benchmark", "format_table", "write_json", "read_json",
            "check_targets", "cpu_model"]
 
-# The JAX runtime benchmark's sizes (obs 679, action 6, H 8, s 4) with this package's policy, and a tiny one.
+# The JAX runtime benchmark's sizes (obs 679, action 6, H 8, s 4) with this package's policy, and a tiny one;
+# time at the token input unless BenchConfig.architecture asks for the chapter-P network ([PT-8]).
 ARCHS = {
     "benchmark": dict(obs_dim=679, action_dim=6, config=PolicyConfig(horizon=8, width=256, channel_hidden=512,
-                                                                      token_hidden=64, num_layers=4, time_dim=64)),
+                                                                      token_hidden=64, num_layers=4, time_dim=64,
+                                                                      architecture="token_input")),
     "tiny": dict(obs_dim=7, action_dim=3, config=PolicyConfig(horizon=8, width=16, channel_hidden=32,
-                                                              token_hidden=8, num_layers=1, time_dim=8)),
+                                                              token_hidden=8, num_layers=1, time_dim=8,
+                                                              architecture="token_input")),
 }
 CHUNK_ROWS = ("naive", "train_hard", "train_soft", "naive_straightforward", "train_soft_straightforward",
               "inference_soft")
@@ -87,6 +90,7 @@ class BenchConfig:
     execute_horizon: int = 4
     seed: int = 0
     arch: str = "benchmark"
+    architecture: str = "token_input"
     threads: int = 1
     clock: str = "thread"
 
@@ -101,6 +105,7 @@ class BenchConfig:
         v.integer("train_calls", self.train_calls, 0, 10**7)
         v.integer("num_steps", self.num_steps, 1, 1000)
         v.choice("arch", self.arch, tuple(ARCHS))
+        v.choice("architecture", self.architecture, ARCHITECTURES)
         v.integer("execute_horizon", self.execute_horizon, 1, ARCHS[self.arch]["config"].horizon - 1)
         v.integer("seed", self.seed, 0, 2**31 - 1)
         v.integer("threads", self.threads, 1, 1024)
@@ -190,7 +195,9 @@ def _run(config: BenchConfig, clock, say) -> dict:
     H, A, O, s, T = arch["config"].horizon, arch["action_dim"], arch["obs_dim"], config.execute_horizon, config.num_steps
     dmax = min(s, H - s)
     g = torch.Generator().manual_seed(config.seed)
-    model = FlowPolicy(O, A, arch["config"], generator=g).eval()
+    pcfg = arch["config"] if config.architecture == "token_input" else \
+        dataclasses.replace(arch["config"], architecture="adaln", time_dim=None)
+    model = FlowPolicy(O, A, pcfg, generator=g).eval()
     tables = {"train_hard": weight_table(H, "hard"), "train_soft": weight_table(H, "soft", None, s)}
     t0 = time.perf_counter()
     chunk = {}
@@ -259,7 +266,8 @@ def format_table(res: dict) -> str:
     """The side-by-side table of a result (the README's table is this text of the committed result)."""
     c, env = res["config"], res["env"]
     arch = ARCHS[c["arch"]]
-    lines = [f"softrtc bench torch: {c['arch']} policy (obs {arch['obs_dim']}, action {arch['action_dim']}, "
+    net = "" if c.get("architecture", "token_input") == "token_input" else f", {c['architecture']} network"
+    lines = [f"softrtc bench torch: {c['arch']} policy{net} (obs {arch['obs_dim']}, action {arch['action_dim']}, "
              f"H {arch['config'].horizon}), s {c['execute_horizon']}, T {c['num_steps']}; median of {c['calls']} "
              f"interleaved calls after {c['warmup']} warm-up rounds, {c.get('clock', 'wall')} clock; torch {env['torch']}, {env['threads']} thread(s), "
              f"{env['cpu_model']}"]

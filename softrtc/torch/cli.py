@@ -43,6 +43,8 @@ def add_subparsers(subparsers) -> None:
     p.add_argument("--execute-horizon", type=int_in("value", 1, 4096), default=4, help="s (default 4)")
     p.add_argument("--seed", type=int_in("value", 0, 2**31 - 1), default=0, help="seed (default 0)")
     p.add_argument("--arch", choices=("benchmark", "tiny"), default="benchmark", help="policy size (default benchmark)")
+    p.add_argument("--architecture", choices=("token_input", "adaln"), default="token_input",
+                   help="policy network: time at the token input (default) or chapter P's adaLN modulation")
     p.add_argument("--threads", type=int_in("value", 1, 1024), default=1, help="torch threads (default 1)")
     p.add_argument("--clock", choices=("thread", "wall"), default="thread",
                    help="thread: the calling thread's CPU time (default; needs --threads 1), wall: elapsed time")
@@ -107,7 +109,7 @@ def run_bench(args) -> int:
         cfg = bench.BenchConfig(calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes),
                                 train_batch=args.train_batch, train_calls=args.train_calls, num_steps=args.steps,
                                 execute_horizon=args.execute_horizon, seed=args.seed, arch=args.arch,
-                                threads=args.threads, clock=args.clock)
+                                architecture=args.architecture, threads=args.threads, clock=args.clock)
     except ValueError as exc:
         return command_error(prog, _as_option(str(exc)))
     res = bench.run_benchmark(cfg, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))

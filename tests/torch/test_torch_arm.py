@@ -96,3 +96,24 @@ def test_evaluation_is_paired():
         for k in arm.METRICS:
             mean, lo, hi = e[k]
             assert math.isnan(mean) or lo - 1e-12 <= mean <= hi + 1e-12
+
+
+def test_saved_policies_record_their_network(tmp_path):
+    """[PT-9] A saved arm policy records its PolicyConfig: one trained with ARM_POLICY (chapter P's network
+    with the JAX arm sizes) loads back with equal parameters; one of another network (time at the token
+    input) is refused with a ValueError that says to retrain, so an old work folder is not evaluated as
+    the chapter-P policy."""
+    import dataclasses
+
+    F = arm._arm()["FEATURE_DIM"]
+    model = FlowPolicy(F, 4, arm.ARM_POLICY, generator=torch.Generator().manual_seed(2))
+    arm._save(tmp_path / "base.pt", model, {"obs_dim": F})
+    back, meta = arm._load(tmp_path / "base.pt")
+    assert meta["policy"]["architecture"] == "adaln"
+    assert all(torch.equal(p, q) for p, q in zip(model.parameters(), back.parameters()))
+    other = FlowPolicy(F, 4, dataclasses.replace(arm.ARM_POLICY, architecture="token_input", time_dim=64),
+                       generator=torch.Generator().manual_seed(2))
+    arm._save(tmp_path / "old.pt", other, {"obs_dim": F})
+    assert arm._trained_with(tmp_path / "old.pt")["architecture"] == "token_input"
+    with pytest.raises(ValueError, match="retrain"):
+        arm._load(tmp_path / "old.pt")

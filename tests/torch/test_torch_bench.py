@@ -68,7 +68,8 @@ def test_ratios_and_targets_from_a_scripted_clock(tmp_path):
 @pytest.mark.slow
 def test_bench_config_and_command_line_checks(tmp_path):
     """[PT-8], [N-7] BenchConfig rejects bad values naming them; the command exits 2 with one line for a bad
-    option or an unreadable --table file, and prints the table of a result file with --table."""
+    option or an unreadable --table file, and prints the table of a result file with --table; the adaln
+    network runs through the same rows with fast and straightforward chunks agreeing."""
     with pytest.raises(ValueError, match="calls"):
         bench.BenchConfig(calls=0)
     with pytest.raises(ValueError, match="execute_horizon"):
@@ -84,7 +85,15 @@ def test_bench_config_and_command_line_checks(tmp_path):
                                                      "integer in [1, 7], got 8")
     r = run("--table", str(tmp_path / "missing.json"))
     assert r.returncode == 2 and "--table" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    with pytest.raises(ValueError, match="architecture must be one of"):
+        bench.BenchConfig(architecture="film")
     res = bench.run_benchmark(bench.BenchConfig(calls=1, warmup=0, batch_sizes=(1,), train_calls=0, arch="tiny"))
     bench.write_json(res, tmp_path / "r.json")
     r = run("--table", str(tmp_path / "r.json"))
     assert r.returncode == 0 and r.stdout.strip() == bench.format_table(res)
+    # [PT-6] with the chapter-P network the fast path gives the straightforward chunks too, and the table says
+    # which network ran
+    ada = bench.run_benchmark(bench.BenchConfig(calls=1, warmup=0, batch_sizes=(2,), train_calls=1, arch="tiny",
+                                                architecture="adaln"))
+    assert ada["agreement"] < 1e-5 and "tiny policy, adaln network (" in bench.format_table(ada)
+    assert "adaln" not in bench.format_table(res)

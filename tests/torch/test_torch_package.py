@@ -14,11 +14,23 @@ from softrtc.torch import (corruption, delays, guidance, loss, methods, sampler,
 from softrtc.torch.policy import FlowPolicy, PolicyConfig  # noqa: E402
 from softrtc.torch.training import RTCObjective  # noqa: E402
 
-SMALL = PolicyConfig(horizon=8, width=16, channel_hidden=24, token_hidden=8, num_layers=2, time_dim=8)
+SMALL = PolicyConfig(horizon=8, width=16, channel_hidden=24, token_hidden=8, num_layers=2)  # adaln, [P-1]
+SMALL_TOKEN = PolicyConfig(horizon=8, width=16, channel_hidden=24, token_hidden=8, num_layers=2, time_dim=8,
+                           architecture="token_input")
+ARCHS = ("adaln", "token_input")
 
 
-def _policy(seed=0, dtype=None):
-    return FlowPolicy(5, 3, SMALL, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+def _policy(seed=0, dtype=None, architecture="adaln"):
+    """A small policy; the adaln one with random modulation layers (adaLN-zero would make it ignore time)."""
+    cfg = SMALL if architecture == "adaln" else SMALL_TOKEN
+    model = FlowPolicy(5, 3, cfg, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+    if architecture == "adaln":
+        g = torch.Generator().manual_seed(1000 + seed)
+        with torch.no_grad():
+            for name, p in model.named_parameters():
+                if "adaln" in name:
+                    p.copy_(0.3 * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    return model
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32, torch.bfloat16])
@@ -59,7 +71,7 @@ def test_loss_gradient_flows_only_through_free_tokens():
     b = obj.draw(a, torch.Generator().manual_seed(3))
     obj.loss(model(torch.zeros(2, 5, dtype=torch.float64), b["x"], b["times"]), a, b).backward()
     assert all(q.grad is not None and torch.isfinite(q.grad).all() for q in model.parameters())
-    assert model.in_time.weight.grad.abs().sum() > 0
+    assert model.time_mlp[0].weight.grad.abs().sum() > 0  # the gradient reaches the time path
 
 
 def test_objective_draws_come_from_the_generator_in_order():
@@ -92,12 +104,13 @@ def test_objective_draws_come_from_the_generator_in_order():
         obj.draw(a, 7)
 
 
-def test_training_step_compiles_without_graph_breaks():
+@pytest.mark.parametrize("architecture", ARCHS)
+def test_training_step_compiles_without_graph_breaks(architecture):
     """[PT-5] prepare + model + loss compile with torch.compile(fullgraph=True) (no graph break: the value
     checks are skipped while compiling) and give the eager loss and gradients; the same holds for the
-    conditioned RTC sampler."""
+    conditioned RTC sampler; both architectures of [PT-7]."""
     torch._dynamo.reset()
-    model = _policy(4)
+    model = _policy(4, architecture=architecture)
     obj = RTCObjective("soft", 8, 4, d_max=4)
     a, obs = torch.randn(5, 8, 3), torch.randn(5, 5)
     draws = obj.draw_uniforms(a, torch.Generator().manual_seed(0))
@@ -122,12 +135,13 @@ def test_training_step_compiles_without_graph_breaks():
     torch.testing.assert_close(comp, ref, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("architecture", ARCHS)
 @pytest.mark.parametrize("convention", ["data_at_1", "noise_at_1"])
-def test_conditioned_samplers_equal_straightforward(convention):
+def test_conditioned_samplers_equal_straightforward(convention, architecture):
     """[PT-6], [S-7] With a precomputed conditioning (one call for all steps, or a per-delay table) the naive
     and RTC samplers give the straightforward samplers' chunks within 1e-5; per-example delays [B] index
-    the table; RTC with w = 0 equals naive bitwise on the straightforward path."""
-    model = _policy(5)
+    the table; RTC with w = 0 equals naive bitwise on the straightforward path; both architectures."""
+    model = _policy(5, architecture=architecture)
     g = torch.Generator().manual_seed(1)
     obs, n, y = torch.randn(4, 5, generator=g), torch.randn(4, 8, 3, generator=g), torch.randn(4, 8, 3, generator=g)
     d = torch.tensor([0, 1, 2, 4])
@@ -219,17 +233,21 @@ def test_invalid_arguments_raise_value_errors_naming_them(call, match):
         call()
 
 
-def test_policy_shared_and_per_token_time_and_conditioning():
+@pytest.mark.parametrize("architecture", ARCHS)
+def test_policy_shared_and_per_token_time_and_conditioning(architecture):
     """[PT-7], [PT-6] FlowPolicy: t [B] equals the same time repeated [B, H]; the velocity equals
-    apply_conditioned(encode_obs(obs), x, time_conditioning(t)); token j's input projection depends on t_j
-    only (changing t_3 changes time_conditioning at token 3 alone); the initialisation is a function of
-    the generator's seed."""
-    model = _policy(8)
+    apply_conditioned(encode_obs(obs), x, time_conditioning(t)); token j's conditioning (input projection
+    or every block's modulation) depends on t_j only (changing t_3 changes time_conditioning at token 3
+    alone); the initialisation is a function of the generator's seed; both architectures."""
+    model = _policy(8, architecture=architecture)
     g = torch.Generator().manual_seed(3)
     obs, x, t = torch.randn(3, 5, generator=g), torch.randn(3, 8, 3, generator=g), torch.rand(3, generator=g)
     with torch.no_grad():
         shared = model(obs, x, t)
-        torch.testing.assert_close(model(obs, x, t[:, None].expand(3, 8)), shared, rtol=0, atol=0)
+        # token input: bitwise; adaln: the shared time's modulation [B, 1, F] broadcasts, a product of other
+        # shape may round differently
+        tol = 0 if architecture == "token_input" else 1e-6
+        torch.testing.assert_close(model(obs, x, t[:, None].expand(3, 8)), shared, rtol=tol, atol=tol)
         tt = torch.rand(3, 8, generator=g)
         torch.testing.assert_close(model(obs, x, tt),
                                    model.apply_conditioned(model.encode_obs(obs), x, model.time_conditioning(tt)))
@@ -237,6 +255,7 @@ def test_policy_shared_and_per_token_time_and_conditioning():
         t2[:, 3] = 0.5 * tt[:, 3]
         diff = (model.time_conditioning(t2) - model.time_conditioning(tt)).abs().sum(-1)
         assert torch.all(diff[:, 3] > 0) and torch.all(diff[:, [0, 1, 2, 4, 5, 6, 7]] == 0)
-    same, other = _policy(8), _policy(9)
-    assert all(torch.equal(p, q) for p, q in zip(model.parameters(), same.parameters()))
-    assert not torch.equal(model.in_obs.weight, other.in_obs.weight)
+    same, other = (FlowPolicy(5, 3, model.config, generator=torch.Generator().manual_seed(k)) for k in (8, 9))
+    first = FlowPolicy(5, 3, model.config, generator=torch.Generator().manual_seed(8))
+    assert all(torch.equal(p, q) for p, q in zip(first.parameters(), same.parameters()))
+    assert any(not torch.equal(p, q) for p, q in zip(first.parameters(), other.parameters()))
