@@ -19,8 +19,8 @@ import numpy as np
 from softrtc.reference import guidance as _ref
 
 from . import _validate as v
-from .sampler import (_at, _runtime, _check_fn, _check_model, _loop, check_batch, check_leading, check_unroll,
-                      euler_times, field_output, naive_conditioning, require)
+from .sampler import (_at, _runtime, _check_fn, _check_model, _loop, _naive_cond, _times, check_batch, check_leading,
+                      check_unroll, field_output, require)
 from .weights import PARAMETRIZATIONS, SCHEDULES, _prefix_jit
 
 MAX_GUIDANCE = _ref.MAX_GUIDANCE
@@ -57,6 +57,11 @@ def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:
     if not v.is_traced(t) and t.size and float(np.max(np.asarray(t))) >= 1.0:
         raise ValueError(f"t must lie in [0, 1), got max {float(np.max(np.asarray(t)))}")
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
+    return _guidance_weight(t, beta)
+
+
+def _guidance_weight(t, beta) -> jax.Array:
+    """[G-4] lam(t) for checked t in [0, 1) and beta > 0."""
     safe_t = jnp.where(t == 0.0, 1.0, t)
     c = jnp.where(t == 0.0, jnp.inf, (1.0 - t) / safe_t)
     inv_r2 = (t * t + (1.0 - t) ** 2) / (1.0 - t) ** 2
@@ -70,7 +75,7 @@ def _guided(apply_fn, obs, x, y, w, T, beta, unroll, head=None):
     token groups ``(v[:, :head], v[:, head:])`` and the pull-back runs through
     the first group only ([G-7]); the caller guarantees ``w[..., head:] == 0``.
     """
-    times = euler_times(T)
+    times = _times(T)
     (wx,) = _runtime(jnp.broadcast_to(w, x.shape[:2])[..., None])
 
     def step(k, x):
@@ -92,7 +97,7 @@ def _guided(apply_fn, obs, x, y, w, T, beta, unroll, head=None):
             x1, pullback, vel = jax.vjp(denoise, x, has_aux=True)
             err = wx[:, :head] * (y[:, :head] - x1)
         (g,) = pullback(err)
-        return x + (vel + guidance_weight(t, beta) * g) / T
+        return x + (vel + _guidance_weight(t, beta) * g) / T
 
     return _loop(step, x, T, unroll)
 
@@ -109,8 +114,13 @@ def guided_sample(velocity_fn, obs, noise, prior, weights, num_steps: int,
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=velocity_fn)
     unroll = check_unroll(unroll)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
+    return _guided_plain(velocity_fn, obs, x, y, w, T, beta, unroll)
+
+
+def _guided_plain(velocity_fn, obs, x, y, w, T: int, beta, unroll: bool) -> jax.Array:
+    """[G-2]..[G-5] the guided sampler on checked arguments (``x`` the noise, ``y`` the prior)."""
     # Same runtime time vector as sampler.naive_sample, so that W = 0 is bitwise naive ([G-6]).
-    times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
+    times, w0 = _runtime(_times(T), jnp.zeros(x.shape[:2], jnp.float32))
 
     def apply_fn(k, x):
         return field_output("velocity_fn", velocity_fn(obs, x, w0 + (1.0 - w0) * times[k]), x)
@@ -140,9 +150,20 @@ def guided_sample_conditioned(model, obs, noise, prior, weights, num_steps: int,
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=model)
     unroll = check_unroll(unroll)
     beta = v.real_value("max_guidance", max_guidance, 0.0, lo_open=True)
-    cond = naive_conditioning(model, T) if cond is None else cond
-    check_leading("cond", cond, (T,))
+    if cond is not None:
+        check_leading("cond", cond, (T,))
     head = None if guided_tokens is None else _check_guided_tokens(model, guided_tokens, w, x.shape[1])
+    return _guided_conditioned(model, obs, x, y, w, T, beta, cond, head, unroll)
+
+
+# max_guidance's default as the checked value v.real_value gives (float32 on the host).
+_BETA = np.asarray(np.float32(MAX_GUIDANCE))
+
+
+def _guided_conditioned(model, obs, x, y, w, T: int, beta, cond, head, unroll: bool) -> jax.Array:
+    """[G-2]..[G-5], [G-7] the guided sampler through ``model.apply_conditioned`` on checked arguments;
+    ``cond`` a checked naive conditioning or None (computed here), ``head`` a checked token count or None."""
+    cond = _naive_cond(model, T) if cond is None else cond
 
     if head is None:
         def apply_fn(k, x):

@@ -24,10 +24,10 @@ import jax.numpy as jnp
 from softrtc.reference import methods as _ref
 
 from . import _validate as v
-from .guidance import _check_guided_tokens, _guidance_prefix, guided_sample, guided_sample_conditioned
-from .sampler import (naive_conditioning, naive_sample, naive_sample_conditioned,
-                      rtc_sample, rtc_sample_conditioned, select_conditioning, conditioning_table,
-                      check_batch, check_leading, check_tree, check_unroll, model_horizon, _check_model)
+from .guidance import _BETA, _check_guided_tokens, _guidance_prefix, _guided_conditioned, _guided_plain
+from .sampler import (MAX_STEPS, _check_fn, _check_model, _cond_table, _naive, _naive_cond, _naive_conditioned, _rtc,
+                      _rtc_conditioned, _select, check_batch, check_leading, check_tree, check_unroll, model_horizon,
+                      select_conditioning)
 from .weights import SoftWindow, _hard, _soft_weights, check_window
 
 METHODS = _ref.METHODS
@@ -92,12 +92,19 @@ def method_weights(method: str, H: int, s: int, d, window=None) -> jax.Array:
     ``SoftWindow()``; a given window is checked for every method, the default
     is resolved for train_soft only ([S-8]).
     """
+    H, s, window = _check_method(method, H, s, window)
+    return _weights(method, H, s, _delay(H, s, d), window)
+
+
+def _check_method(method, H, s, window):
+    """``method``, ``H``, ``s`` and ``window`` of :func:`method_weights` checked; returns (H, s, window), the
+    window resolved for train_soft ([S-8])."""
     v.check_choice("method", method, METHODS)
     H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
     if window is not None or method == "train_soft":
         window = check_window(H, SoftWindow() if window is None else window)
-    return _weights(method, H, s, _delay(H, s, d), window)
+    return H, s, window
 
 
 def _weights(method, H, s, d, window):
@@ -114,10 +121,13 @@ def method_weight_table(method: str, H: int, s: int, window=None) -> jax.Array:
     ``table[d]`` equals ``method_weights(method, H, s, d, window)``. (For
     training delays up to H use :func:`softrtc.jax.weights.weight_table`.)
     """
-    v.check_choice("method", method, METHODS)
-    H = v.check_horizon(H)
-    s = v.check_int("s", s, 1, H)
-    return method_weights(method, H, s, jnp.arange(min(s, H - s) + 1, dtype=jnp.int32), window)
+    H, s, window = _check_method(method, H, s, window)
+    return _weight_table(method, H, s, window)
+
+
+def _weight_table(method, H, s, window):
+    """:func:`method_weight_table` of checked arguments: rows d = 0 .. min(s, H - s) ([X-1])."""
+    return _weights(method, H, s, jnp.arange(min(s, H - s) + 1, dtype=jnp.int32), window)
 
 
 def _check_first(prior, d):
@@ -138,12 +148,16 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     """
     H, s, dd, window = _check_request(method, noise, prior, s, d, window)
     unroll = check_unroll(unroll)
-    if prior is None or method == "naive":
-        return naive_sample(velocity_fn, obs, noise, num_steps, unroll=unroll)
+    _check_fn("velocity_fn", velocity_fn)
+    naive = prior is None or method == "naive"
+    obs, x, y, _, T = check_batch(obs, noise, None if naive else prior, num_steps=num_steps, model=velocity_fn)
+    # Checked once, above: the samplers' cores take the checked values.
+    if naive:
+        return _naive(velocity_fn, obs, x, T, unroll)
     w = _weights(method, H, s, dd, window)
     if method.startswith("inference_"):
-        return guided_sample(velocity_fn, obs, noise, prior, w, num_steps, unroll=unroll)
-    return rtc_sample(velocity_fn, obs, noise, prior, w, num_steps, unroll=unroll)
+        return _guided_plain(velocity_fn, obs, x, y, w, T, _BETA, unroll)
+    return _rtc(velocity_fn, obs, x, y, w, T, unroll)
 
 
 def method_tables(method: str, model, H: int, s: int, num_steps: int, window=None) -> dict:
@@ -156,12 +170,14 @@ def method_tables(method: str, model, H: int, s: int, num_steps: int, window=Non
     Depends on the model's parameters and the window only: build it once per
     parameter update, outside the rollout loop.
     """
-    w = method_weight_table(method, H, s, window)
+    H, s, window = _check_method(method, H, s, window)
     _check_model(model)
     _check_model_horizon(model, H, "method_tables")
+    T = v.check_int("num_steps", num_steps, 1, MAX_STEPS)
+    w = _weight_table(method, H, s, window)
     if method.startswith("train_"):
-        return {"weights": w, "cond": conditioning_table(model, w, num_steps)}
-    return {"weights": w, "cond": naive_conditioning(model, num_steps)}
+        return {"weights": w, "cond": _cond_table(model, w, T)}
+    return {"weights": w, "cond": _naive_cond(model, T)}
 
 
 def _check_model_horizon(model, H: int, where: str) -> None:
@@ -238,21 +254,20 @@ def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: in
     unroll = check_unroll(unroll)
     w = v.array("row['weights']", row["weights"], shape=(H,), lo=0.0, hi=1.0)
     check_leading("row['cond']", row["cond"], (T,))
+    head = None
     if guided_tokens is not None:
         if method.startswith("inference_"):
-            _check_guided_tokens(model, guided_tokens, w, H)
+            head = _check_guided_tokens(model, guided_tokens, w, H)
         else:
             v.check_int("guided_tokens", guided_tokens, 1, H - 1)
+    # A prior is a chunk batch for every method; naive ignores it ([S-8]).
+    y = None if prior is None else v.array("prior", prior, shape=x.shape)
     if prior is None or method == "naive":
-        if prior is not None:
-            v.array("prior", prior, shape=x.shape)  # naive ignores it, but it must be a chunk batch ([S-8])
         cond = None if method.startswith("train_") else row["cond"]
-        return naive_sample_conditioned(model, obs, noise, num_steps, cond=cond, unroll=unroll)
+        return _naive_conditioned(model, obs, x, T, cond, unroll)
     if method.startswith("inference_"):
-        return guided_sample_conditioned(model, obs, noise, prior, row["weights"], num_steps, cond=row["cond"],
-                                         guided_tokens=guided_tokens, unroll=unroll)
-    return rtc_sample_conditioned(model, obs, noise, prior, row["weights"], num_steps, cond=row["cond"],
-                                  unroll=unroll)
+        return _guided_conditioned(model, obs, x, y, w, T, _BETA, row["cond"], head, unroll)
+    return _rtc_conditioned(model, obs, x, y, w, T, row["cond"], unroll)
 
 
 def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d, num_steps: int,
@@ -275,17 +290,24 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     unroll = check_unroll(unroll)
     if tables is not None:
         _check_tables(method, tables, H, s, num_steps)
+    _check_model(model)
+    naive = prior is None or method == "naive"
+    obs, x, y, _, T = check_batch(obs, noise, None if naive else prior, num_steps=num_steps, model=model)
+    # Checked once, above: the samplers' cores take the checked values.
     naive_cond = None if tables is None or method.startswith("train_") else tables["cond"]
-    if prior is None or method == "naive":
-        return naive_sample_conditioned(model, obs, noise, num_steps, cond=naive_cond, unroll=unroll)
+    if naive:
+        return _naive_conditioned(model, obs, x, T, naive_cond, unroll)
     if tables is None:
         w = _weights(method, H, s, dd, window)
         cond = None
     else:
-        w = tables["weights"][dd]
-        cond = select_conditioning(tables["cond"], dd) if method.startswith("train_") else naive_cond
+        # The tables' weights are the caller's: their values are checked here ([N-7]).
+        w = v.array("weights", tables["weights"][dd], lo=0.0, hi=1.0)
+        cond = _select(tables["cond"], dd) if method.startswith("train_") else naive_cond
     if method.startswith("inference_"):
-        return guided_sample_conditioned(model, obs, noise, prior, w, num_steps, cond=cond,
-                                         guided_tokens=H - s if restrict_guidance and s < H else None,
-                                         unroll=unroll)
-    return rtc_sample_conditioned(model, obs, noise, prior, w, num_steps, cond=cond, unroll=unroll)
+        head = None
+        if restrict_guidance and s < H:
+            # [G-1] weights vanish from H - s on; given tables' weights are checked for it.
+            head = _check_guided_tokens(model, H - s, None if tables is None else w, H)
+        return _guided_conditioned(model, obs, x, y, w, T, _BETA, cond, head, unroll)
+    return _rtc_conditioned(model, obs, x, y, w, T, cond, unroll)

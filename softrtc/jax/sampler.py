@@ -41,7 +41,11 @@ MAX_STEPS = 1 << 16
 
 def euler_times(num_steps: int) -> jax.Array:
     """t_k = k / T, k = 0 .. T-1, float32 ([S-1])."""
-    T = v.check_int("num_steps", num_steps, 1, MAX_STEPS)
+    return _times(v.check_int("num_steps", num_steps, 1, MAX_STEPS))
+
+
+def _times(T: int) -> jax.Array:
+    """[S-1] t_k = k / T for a checked T."""
     return jnp.arange(T, dtype=jnp.float32) / T
 
 
@@ -233,10 +237,14 @@ def naive_sample(velocity_fn, obs, noise, num_steps: int, *, unroll: bool = True
     """Naive Euler sampler ([S-1], [S-2]): x += v(obs, x, t_k 1) / T; returns x^T [B, H, A]."""
     _check_fn("velocity_fn", velocity_fn)
     obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps, model=velocity_fn)
-    unroll = check_unroll(unroll)
+    return _naive(velocity_fn, obs, x, T, check_unroll(unroll))
+
+
+def _naive(velocity_fn, obs, x, T: int, unroll: bool) -> jax.Array:
+    """[S-1], [S-2] x += v(obs, x, t_k 1) / T on checked arguments (``x`` the noise)."""
     # t_k 1 is computed as the blended time of zero weights, 0 + (1 - 0) t_k (exactly t_k),
     # so that the RTC sampler with w = 0 runs the same arithmetic ([S-7]).
-    times, w0 = _runtime(euler_times(T), jnp.zeros(x.shape[:2], jnp.float32))
+    times, w0 = _runtime(_times(T), jnp.zeros(x.shape[:2], jnp.float32))
 
     def step(k, x):
         return x + field_output("velocity_fn", velocity_fn(obs, x, w0 + (1.0 - w0) * times[k]), x) / T
@@ -253,8 +261,13 @@ def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unrol
     require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
     require("weights", weights, "an array [H] or [B, H] in [0, 1]")
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=velocity_fn)
-    unroll = check_unroll(unroll)
-    times, wb = _runtime(euler_times(T), jnp.broadcast_to(w, x.shape[:2]))
+    return _rtc(velocity_fn, obs, x, y, w, T, check_unroll(unroll))
+
+
+def _rtc(velocity_fn, obs, x, y, w, T: int, unroll: bool) -> jax.Array:
+    """[S-3], [S-4] Euler steps from the blend x~ = w y + (1 - w) x at times t~ = w + (1 - w) t_k, on
+    checked arguments (``x`` the noise, ``y`` the prior, ``w`` weights [H] or [B, H])."""
+    times, wb = _runtime(_times(T), jnp.broadcast_to(w, x.shape[:2]))
     wx = wb[..., None]
 
     def step(k, x):
@@ -273,15 +286,24 @@ def rtc_time_table(weights, num_steps: int) -> jax.Array:
     w = v.array("weights", weights, lo=0.0, hi=1.0)
     if w.ndim < 1:
         raise ValueError("weights must have shape [..., H] (at least one axis), got a scalar")
-    times = euler_times(num_steps)
-    t = times.reshape((-1,) + (1,) * w.ndim)
+    return _time_table(w, v.check_int("num_steps", num_steps, 1, MAX_STEPS))
+
+
+def _time_table(w, T: int) -> jax.Array:
+    """[S-3] t~^k = w + (1 - w) t_k, [T, ..., H], for checked weights and T."""
+    t = _times(T).reshape((-1,) + (1,) * w.ndim)
     return w + (1.0 - w) * t
 
 
 def naive_conditioning(model, num_steps: int):
     """Time conditioning of the naive sampler: ``model.time_conditioning(t_k)`` for t [T, 1, 1] ([S-2])."""
     _check_model(model)
-    return model.time_conditioning(euler_times(num_steps)[:, None, None])
+    return _naive_cond(model, v.check_int("num_steps", num_steps, 1, MAX_STEPS))
+
+
+def _naive_cond(model, T: int):
+    """[S-2] ``model.time_conditioning(t_k)``, t [T, 1, 1], for a checked model and T."""
+    return model.time_conditioning(_times(T)[:, None, None])
 
 
 def rtc_conditioning(model, weights, num_steps: int):
@@ -296,9 +318,12 @@ def rtc_conditioning(model, weights, num_steps: int):
     if w.ndim not in (1, 2):
         raise ValueError(f"weights must have shape [H] or [B, H], got {list(w.shape)}")
     _check_model_h("weights", w, model)
-    if w.ndim == 1:
-        w = w[None]
-    return model.time_conditioning(rtc_time_table(w, num_steps))
+    return _rtc_cond(model, w, v.check_int("num_steps", num_steps, 1, MAX_STEPS))
+
+
+def _rtc_cond(model, w, T: int):
+    """[S-3] ``model.time_conditioning(t~ [T, b, H])`` for checked weights [H] (b = 1) or [B, H] and T."""
+    return model.time_conditioning(_time_table(w[None] if w.ndim == 1 else w, T))
 
 
 def conditioning_table(model, weight_table, num_steps: int):
@@ -312,8 +337,13 @@ def conditioning_table(model, weight_table, num_steps: int):
     _check_model(model)
     wt = v.array("weight_table", weight_table, ndim=2, lo=0.0, hi=1.0)
     _check_model_h("weight_table", wt, model)
-    # rtc_time_table puts the step axis first: [T, D, 1, H] -> [D, T, 1, H].
-    return model.time_conditioning(jnp.swapaxes(rtc_time_table(wt[:, None, :], num_steps), 0, 1))
+    return _cond_table(model, wt, v.check_int("num_steps", num_steps, 1, MAX_STEPS))
+
+
+def _cond_table(model, wt, T: int):
+    """[S-3] the per-delay conditioning table [D, T, 1, ...] of a checked weight table [D, H] and T."""
+    # _time_table puts the step axis first: [T, D, 1, H] -> [D, T, 1, H].
+    return model.time_conditioning(jnp.swapaxes(_time_table(wt[:, None, :], T), 0, 1))
 
 
 def select_conditioning(table, d):
@@ -329,7 +359,12 @@ def select_conditioning(table, d):
     d = v.int_value("d", d, 0, D - 1) if jnp.ndim(d) == 0 else v.int_array("d", d, shape=(None,), lo=0, hi=D - 1)
     if d.ndim and d.shape[0] == 0:
         raise ValueError("d must be an integer scalar or a non-empty vector [B], got an empty vector ([N-12])")
-    if d.ndim == 0:
+    return _select(table, d)
+
+
+def _select(table, d):
+    """Rows of a checked per-delay table for a checked delay: scalar d -> [T, 1, ...], d [B] -> [T, B, ...]."""
+    if jnp.ndim(d) == 0:
         return _at(table, d)
     return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a[d][:, :, 0], 0, 1), table)
 
@@ -343,8 +378,15 @@ def naive_sample_conditioned(model, obs, noise, num_steps: int, *, cond=None,
     _check_model(model)
     obs, x, _, _, T = check_batch(obs, noise, num_steps=num_steps, model=model)
     unroll = check_unroll(unroll)
-    cond = naive_conditioning(model, T) if cond is None else cond
-    check_leading("cond", cond, (T,))
+    if cond is not None:
+        check_leading("cond", cond, (T,))
+    return _naive_conditioned(model, obs, x, T, cond, unroll)
+
+
+def _naive_conditioned(model, obs, x, T: int, cond, unroll: bool) -> jax.Array:
+    """[S-2] the naive sampler through ``model.apply_conditioned`` on checked arguments; ``cond`` a checked
+    naive conditioning [T, ...], or None to compute it here."""
+    cond = _naive_cond(model, T) if cond is None else cond
 
     def step(k, x):
         return x + field_output("model.apply_conditioned", model.apply_conditioned(obs, x, _at(cond, k)), x) / T
@@ -366,8 +408,15 @@ def rtc_sample_conditioned(model, obs, noise, prior, weights, num_steps: int, *,
     require("weights", weights, "an array [H] or [B, H] in [0, 1]")
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=model)
     unroll = check_unroll(unroll)
-    cond = rtc_conditioning(model, w, T) if cond is None else cond
-    check_leading("cond", cond, (T,))
+    if cond is not None:
+        check_leading("cond", cond, (T,))
+    return _rtc_conditioned(model, obs, x, y, w, T, cond, unroll)
+
+
+def _rtc_conditioned(model, obs, x, y, w, T: int, cond, unroll: bool) -> jax.Array:
+    """[S-3]..[S-5] the RTC sampler through ``model.apply_conditioned`` on checked arguments; ``cond`` the
+    checked conditioning of ``w``'s blended times [T, ...], or None to compute it here."""
+    cond = _rtc_cond(model, w, T) if cond is None else cond
     wx = jnp.broadcast_to(w, x.shape[:2])[..., None]
 
     def step(k, x):
