@@ -33,6 +33,11 @@ def check_delays(H: int, s: int, delays) -> np.ndarray:
     """Host-side check of a delay sequence for :func:`execute_chunks` ([X-1], [X-2]): d_0 = 0."""
     H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
+    return _host_delays(H, s, delays)
+
+
+def _host_delays(H: int, s: int, delays) -> np.ndarray:
+    """:func:`check_delays` for checked ``H`` and ``s``: the caller's integers, before any cast to int32."""
     if isinstance(delays, (str, bytes)) or not (isinstance(delays, Sequence) or hasattr(delays, "__array__")):
         # A dict would be read by its keys and a set in hash order ([X-5]).
         raise ValueError(f"delays must be a non-empty 1-D integer array (or list, tuple), "
@@ -131,15 +136,23 @@ def execute_chunks(chunks, delays, s: int) -> dict:
     if C < 1:
         raise ValueError("chunks must hold at least one chunk, got 0")
     s = v.check_int("s", s, 1, H)
-    if not v.is_traced(delays):
-        check_delays(H, s, delays)  # on the caller's integers, before any cast to int32
-    ds = v.int_array("delays", delays, shape=(C,))
+    ds = _delays(H, s, delays)
+    if ds.shape != (C,):
+        raise ValueError(f"delays must have shape [{C}], got {list(ds.shape)}")
     c = jnp.arange(C, dtype=jnp.int32)
     # The first chunk never takes from a previous one ([X-2]), whatever d_0 holds.
     from_prev, token = _sources(s, jnp.where(c >= 1, ds, 0))
     ci = jnp.where(from_prev, c[:, None] - 1, c[:, None]).reshape(C * s)
     ti = token.reshape(C * s)
     return {"actions": ch[ci, ti], "chunk_index": ci, "token_index": ti}
+
+
+def _delays(H: int, s: int, delays) -> jax.Array:
+    """The delays of :func:`execute_chunks` and :func:`closed_loop` as int32, checked once: concrete ones
+    on the host ([X-1], [X-2], [X-5]), traced ones for their dtype (their range is the caller's)."""
+    if v.is_traced(delays):
+        return v.int_array("delays", delays)
+    return jnp.asarray(_host_delays(H, s, delays), jnp.int32)
 
 
 def _callback_array(name: str, value, what: str):
@@ -182,9 +195,7 @@ def closed_loop(generate, env_step, env_state, obs0, delays, H: int, s: int):
         raise ValueError("generate and env_step must be callables")
     H = v.check_horizon(H)
     s = v.check_int("s", s, 1, H)
-    if not v.is_traced(delays):
-        check_delays(H, s, delays)  # on the caller's integers, before any cast to int32
-    ds = v.int_array("delays", delays)
+    ds = _delays(H, s, delays)
     if ds.ndim != 1 or ds.shape[0] < 1:
         raise ValueError(f"delays must have shape [C] with C >= 1, got {list(ds.shape)}")
     if v.is_traced(obs0):
