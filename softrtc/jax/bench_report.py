@@ -6,13 +6,13 @@ import json
 import math
 import numbers
 import os
-import platform
 from typing import Any, Callable, Mapping
 
 import jax
 import numpy as np
 
 from softrtc._files import write_atomic
+from softrtc._machine import cpu_model  # one copy for JAX and torch ([B-10])
 
 from .bench_config import (ARCHS, GUIDED_VS_PUBLIC_LIMIT, NAIVE_VS_STRAIGHTFORWARD_LIMIT, SOFT_STEP_LIMIT,
                            TRAIN_METHODS, TRAIN_SAMPLER_LIMIT)
@@ -34,22 +34,6 @@ def _formatted(producer: str, fmt: Callable[[dict], str], res: Any, keys: tuple)
         raise ValueError(f"res must be a complete result of {producer}; it lacks the key {exc.args[0]!r}") from None
     except (TypeError, AttributeError, IndexError, ValueError) as exc:
         raise ValueError(f"res must be a result of {producer}; an entry has the wrong type or form ({exc})") from None
-
-
-def cpu_model() -> str:
-    """The CPU's model name (Linux ``/proc/cpuinfo``, else ``platform.processor()``), or ``"unknown"``.
-
-    Ratios between rows depend on the CPU model, not only on the core count ([B-10]).
-    """
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                if key.strip() == "model name" and value.strip():
-                    return value.strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _machine(env: Mapping) -> str:

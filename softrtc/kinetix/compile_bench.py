@@ -25,6 +25,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
+from softrtc._machine import cpu_model
 from softrtc.jax.policy import FlowPolicy, PolicyConfig
 from softrtc.reference._validate import check_int
 
@@ -119,7 +120,7 @@ def bench_compile(level: str = "grasp_easy", num_envs: int = 64, seed: int = 0,
     rows = add_ratios(rows, env_steps)
     return {"level": level, "num_envs": num_envs, "env_steps": env_steps, "repeats": repeats, "seed": seed,
             "policy_params": int(sum(np.size(x) for x in jax.tree.leaves(nnx.state(policy)))),
-            "device": str(jax.devices()[0]), "num_devices": len(jax.devices()), "cpu": _cpu_model(),
+            "device": str(jax.devices()[0]), "num_devices": len(jax.devices()), "cpu": cpu_model(),
             "programs": rows}
 
 
@@ -152,16 +153,6 @@ def _best(run, repeats: int) -> float:
     return min(times)
 
 
-def _cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    import platform
-
-    return platform.processor() or "unknown"
 
 
 def format_compile_bench(res: dict) -> str:

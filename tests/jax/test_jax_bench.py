@@ -62,10 +62,12 @@ def test_environment_names_the_cpu_model(result, monkeypatch):
             raise OSError("no such file")
         return real_open(path, *a, **k)
 
+    from softrtc import _machine
+
     monkeypatch.setattr(builtins, "open", no_cpuinfo)
-    monkeypatch.setattr(bench_report.platform, "processor", lambda: "")
+    monkeypatch.setattr(_machine.platform, "processor", lambda: "")
     assert bench_report.cpu_model() == "unknown"
-    monkeypatch.setattr(bench_report.platform, "processor", lambda: "arm64")
+    monkeypatch.setattr(_machine.platform, "processor", lambda: "arm64")
     assert bench_report.cpu_model() == "arm64"
 
 
