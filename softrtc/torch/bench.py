@@ -27,7 +27,6 @@ import dataclasses
 import json
 import math
 import os
-import platform
 import statistics
 import time
 from typing import Callable
@@ -35,6 +34,7 @@ from typing import Callable
 import torch
 
 from softrtc._files import write_atomic
+from softrtc._machine import cpu_model  # one copy for JAX and torch ([PT-8])
 
 from . import _validate as v
 from .guidance import guided_sample
@@ -113,19 +113,6 @@ class BenchConfig:
         if self.clock == "thread" and self.threads != 1:
             raise ValueError(f"clock 'thread' counts the calling thread's CPU time only and needs threads=1, "
                              f"got threads={self.threads} (use clock 'wall')")
-
-
-def cpu_model() -> str:
-    """The CPU's model name (Linux /proc/cpuinfo), else platform.processor(), else "unknown"."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                if key.strip() == "model name" and value.strip():
-                    return value.strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def _timed(rows: dict, rounds: int, warmup: int, clock: Callable[[], float]) -> dict:
