@@ -23,18 +23,6 @@ from softrtc.kinetix import cache  # noqa: E402
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture
-def restore_cache():
-    before = dict(cache._state)
-    yield
-    cache.clear_memory()
-    if before["configured"]:
-        cache.enable_compile_cache(before["dir"])
-    else:
-        cache.enable_compile_cache(None)
-        cache._state["configured"] = False
-
-
 def test_default_cache_dir_from_environment(monkeypatch, tmp_path):
     """KC-1: $SOFTRTC_JAX_CACHE names the folder, 'off' disables it, else the per-user XDG folder."""
     monkeypatch.setenv(cache.CACHE_ENV, str(tmp_path / "c"))

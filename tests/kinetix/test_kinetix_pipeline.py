@@ -168,20 +168,6 @@ TINY_POLICY = ["--channel-dim", "8", "--channel-hidden-dim", "8", "--token-hidde
                "--chunk-size", "8"]
 
 
-@pytest.fixture
-def restore_cache():
-    from softrtc.kinetix import cache
-
-    before = dict(cache._state)
-    yield
-    cache.clear_memory()
-    if before["configured"]:
-        cache.enable_compile_cache(before["dir"])
-    else:
-        cache.enable_compile_cache(None)
-        cache._state["configured"] = False
-
-
 @needs_levels
 @pytest.mark.slow
 def test_pipeline_end_to_end_tiny(tmp_path, capsys, restore_cache):
