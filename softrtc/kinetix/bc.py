@@ -18,7 +18,6 @@ interrupted run continues bitwise where it stopped ([KP-12]).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import pickle
@@ -35,12 +34,13 @@ from tqdm.auto import tqdm
 from softrtc._files import check_out_dir, write_atomic
 from softrtc.jax.params import state_pure_dict
 from softrtc.jax.policy import FlowPolicy, PolicyConfig
-from softrtc.jax.training import TrainConfig, TrainState, make_train_step
+from softrtc.jax.training import TrainConfig, make_train_step
 from softrtc.reference._validate import check_int
 
 from . import data as kdata
 from . import env as kenv
 from .curves import plot_curves, write_curve_csv
+from .resume import load_state, save_state
 
 __all__ = ["BC_CURVE_FIELDS", "bc_train_config", "train_bc"]
 
@@ -51,22 +51,6 @@ def bc_train_config(batch_size: int = 512, learning_rate: float = 3e-4, warmup_s
     """The release's behaviour-cloning optimiser ([KP-11]) as a :class:`TrainConfig` of method ``none``."""
     return TrainConfig(method="none", execute_horizon=None, batch_size=batch_size, learning_rate=learning_rate,
                        weight_decay=1e-2, grad_clip_norm=10.0, warmup_steps=warmup_steps)
-
-
-def _save_resume(path: Path, state: TrainState, meta: dict) -> None:
-    arrays = {f"leaf_{i:05d}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(state))}
-    arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
-    write_atomic(path, lambda f: np.savez(f, **arrays), binary=True)
-
-
-def _load_resume(path: Path, template: TrainState) -> tuple[TrainState, dict]:
-    leaves, treedef = jax.tree.flatten(template)
-    with np.load(path) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-        got = [z[f"leaf_{i:05d}"] for i in range(len([k for k in z.files if k.startswith("leaf_")]))]
-    if len(got) != len(leaves) or any(a.shape != t.shape or a.dtype != t.dtype for a, t in zip(got, leaves)):
-        raise ValueError(f"resume file {path} does not match this policy and optimiser")
-    return jax.tree.unflatten(treedef, [jax.numpy.asarray(a) for a in got]), meta
 
 
 def train_bc(data_dir: str | os.PathLike, level: str, out_dir: str | os.PathLike, *, epochs: int = 32,
@@ -108,7 +92,7 @@ def train_bc(data_dir: str | os.PathLike, level: str, out_dir: str | os.PathLike
     rows: list = []
     first_epoch = 0
     if resume and resume_path.is_file():
-        state, saved = _load_resume(resume_path, state)
+        state, saved = load_state(resume_path, state, "this policy and optimiser")
         if {k: saved.get(k) for k in meta if k != "data_file"} != {k: meta[k] for k in meta if k != "data_file"}:
             raise ValueError(f"resume file {resume_path} was written for another level, seed, policy or optimiser; "
                              f"use another --out or resume=False")
@@ -137,7 +121,7 @@ def train_bc(data_dir: str | os.PathLike, level: str, out_dir: str | os.PathLike
             blob = pickle.dumps(pure)
             write_atomic(pol_path, lambda f: f.write(blob), binary=True)
             write_curve_csv(csv_path, rows, BC_CURVE_FIELDS)
-            _save_resume(resume_path, state, dict(meta, rows=rows, epochs_done=epoch + 1))
+            save_state(resume_path, state, dict(meta, rows=rows, epochs_done=epoch + 1))
             bar.set_postfix_str(f"loss {rows[-1]['loss']:.4g}")
     plot_curves(csv_path, out / f"curve_{name}.png", x="epoch", ys=("loss",), title=f"behaviour cloning, {level}")
     return {"level": level, "epochs": len(rows), "examples": n, "steps_per_epoch": per_epoch,

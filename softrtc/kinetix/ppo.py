@@ -43,6 +43,7 @@ from softrtc.reference._validate import check_int
 from . import env as kenv
 from . import expert as kexp
 from .curves import plot_curves, write_curve_csv
+from .resume import load_state, save_state
 
 __all__ = ["PPOConfig", "train_reward", "make_ppo", "train_expert", "expert_paths", "CURVE_FIELDS"]
 
@@ -246,36 +247,6 @@ def expert_paths(run_dir: str | os.PathLike, seed: int, level: str, update: int 
     return out
 
 
-def _save_state(path: Path, state: dict, meta: dict) -> None:
-    leaves = jax.tree.leaves(state)
-    arrays = {}
-    for i, leaf in enumerate(leaves):
-        if jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
-            leaf = jax.random.key_data(leaf)
-        arrays[f"leaf_{i:05d}"] = np.asarray(leaf)
-    arrays["meta"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), np.uint8)
-    write_atomic(path, lambda f: np.savez(f, **arrays), binary=True)
-
-
-def _load_state(path: Path, template: dict) -> tuple[dict, dict]:
-    leaves, treedef = jax.tree.flatten(template)
-    with np.load(path) as z:
-        meta = json.loads(bytes(z["meta"]).decode())
-        if len([k for k in z.files if k.startswith("leaf_")]) != len(leaves):
-            raise ValueError(f"resume file {path} does not match this configuration (leaf count differs)")
-        out = []
-        for i, t in enumerate(leaves):
-            a = z[f"leaf_{i:05d}"]
-            if jnp.issubdtype(t.dtype, jax.dtypes.prng_key):
-                out.append(jax.random.wrap_key_data(jnp.asarray(a), impl=jax.random.key_impl(t)))
-                continue
-            if a.shape != t.shape or a.dtype != t.dtype:
-                raise ValueError(f"resume file {path} does not match this configuration "
-                                 f"(leaf {i}: {a.dtype}{list(a.shape)} vs {t.dtype}{list(t.shape)})")
-            out.append(jnp.asarray(a))
-    return jax.tree.unflatten(treedef, out), meta
-
-
 def train_expert(level: str, run_dir: str | os.PathLike, *, updates: int, seed: int = 0,
                  config: PPOConfig | None = None, log_interval: int = 20, max_minutes: float | None = None,
                  levels_dir: str | os.PathLike | None = None, resume: bool = True, progress: bool = True,
@@ -309,7 +280,7 @@ def train_expert(level: str, run_dir: str | os.PathLike, *, updates: int, seed: 
     rows: list[dict] = []
     wall0 = 0.0
     if resume and paths["resume"].is_file():
-        state, saved = _load_state(paths["resume"], state)
+        state, saved = load_state(paths["resume"], state, "this configuration")
         if {k: saved.get(k) for k in ("level", "seed", "config")} != {k: meta[k] for k in ("level", "seed", "config")}:
             raise ValueError(f"resume file {paths['resume']} was written for another level, seed or configuration "
                              f"({saved.get('level')}, seed {saved.get('seed')}); use another run folder or resume=False")
@@ -351,7 +322,7 @@ def train_expert(level: str, run_dir: str | os.PathLike, *, updates: int, seed: 
                                                                     "clipfrac", "grad_norm")}}
             write_atomic(p["stats"], lambda f: json.dump(stats, f, indent=2))
             write_curve_csv(paths["curve_csv"], rows, CURVE_FIELDS)
-            _save_state(paths["resume"], state, dict(meta, rows=rows))
+            save_state(paths["resume"], state, dict(meta, rows=rows))
             bar.set_postfix_str(f"solved {stats['returned_episode_solved']:.3f}")
             if max_minutes is not None and clock() - t_start >= 60.0 * max_minutes and done < updates:
                 stopped_early = True
