@@ -31,6 +31,14 @@ def _window_from(d):
     return rw.SoftWindow(r, d["schedule"], d["parametrization"], d["overflow"])
 
 
+def _save(plt, fig, path: Path) -> Path:
+    """``fig`` as a PNG at ``path`` (no software tag, so the bytes depend on the figure only), then closed."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=100, metadata={"Software": None})
+    plt.close(fig)
+    return path
+
+
 def plot_all(res, out_dir) -> list:
     """PNG plots: frontier, sweeps, success per delay, window weights ([AX-6])."""
     import matplotlib
@@ -59,11 +67,7 @@ def plot_all(res, out_dir) -> list:
     ax.set_xlabel("overall success")
     ax.set_ylabel("high-delay D2 (jerk)")
     ax.set_title(f"task {m['task']}: success / high-delay jerk frontier")
-    p = out_dir / "frontier.png"
-    fig.tight_layout()
-    fig.savefig(p, dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save(plt, fig, out_dir / "frontier.png"))
     # Sweeps.
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ov, mk in (("clip", "o-"), ("zeros", "s--")):
@@ -78,11 +82,7 @@ def plot_all(res, out_dir) -> list:
     axes[1].set_xlabel("L")
     axes[1].set_ylabel("high-delay D2")
     axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    p = out_dir / "sweeps.png"
-    fig.savefig(p, dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save(plt, fig, out_dir / "sweeps.png"))
     # Success per delay.
     fig, ax = plt.subplots(figsize=(7, 4))
     for r, info in _rows_in_order(m):
@@ -93,11 +93,7 @@ def plot_all(res, out_dir) -> list:
     ax.set_xlabel("delay d (ticks)")
     ax.set_ylabel("success")
     ax.legend(fontsize=6)
-    fig.tight_layout()
-    p = out_dir / "success_by_delay.png"
-    fig.savefig(p, dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save(plt, fig, out_dir / "success_by_delay.png"))
     # Window weights.
     s = m["execute_horizon"]
     maxd = min(s, H - s)
@@ -111,9 +107,5 @@ def plot_all(res, out_dir) -> list:
         ax.set_xticks([])
         ax.set_yticks(range(maxd + 1))
         ax.tick_params(labelsize=5)
-    fig.tight_layout()
-    p = out_dir / "window_weights.png"
-    fig.savefig(p, dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    paths.append(p)
+    paths.append(_save(plt, fig, out_dir / "window_weights.png"))
     return paths

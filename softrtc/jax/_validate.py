@@ -131,10 +131,7 @@ def array(name: str, value, shape: tuple | None = None, ndim: int | None = None,
         value = jnp.asarray(value, dtype)
     if ndim is not None and value.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {list(value.shape)}")
-    if shape is not None:
-        if value.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, value.shape)):
-            want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
-            raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
+    _check_shape(name, value, shape)
     if not allow_empty and 0 in value.shape:
         raise ValueError(f"{name} must have at least one entry along every axis, got shape {list(value.shape)}")
     if raw is not None and value.size:
@@ -172,11 +169,16 @@ def int_array(name: str, value, shape: tuple | None = None, lo: int | None = Non
     elif not jnp.issubdtype(jnp.result_type(value), jnp.integer):
         raise ValueError(f"{name} must be an integer array, got dtype {jnp.result_type(value)}")
     value = jnp.asarray(value, jnp.int32)
+    _check_shape(name, value, shape)
+    return value
+
+
+def _check_shape(name: str, value, shape: tuple | None) -> None:
+    """``value``'s shape is ``shape`` (``None`` entries free; no check for ``shape`` None) ([N-7])."""
     if shape is not None:
         if value.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, value.shape)):
             want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
             raise ValueError(f"{name} must have shape {want}, got {list(value.shape)}")
-    return value
 
 
 def _holds_bool(value) -> bool:
