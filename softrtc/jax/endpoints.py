@@ -60,8 +60,10 @@ class EndpointRule:
 
 
 def _rule(kind, lam=0.0, h_max=0, length=0) -> EndpointRule:
-    return EndpointRule(lam=jnp.asarray(lam, jnp.float32), h_max=jnp.asarray(h_max, jnp.int32),
-                        length=jnp.asarray(length, jnp.int32), kind=kind)
+    # Concrete parameters stay NumPy scalars (jit takes them as it takes arrays); traced ones stay traced.
+    xp = jnp if v.is_traced((lam, h_max, length)) else np
+    return EndpointRule(lam=xp.asarray(lam, xp.float32), h_max=xp.asarray(h_max, xp.int32),
+                        length=xp.asarray(length, xp.int32), kind=kind)
 
 
 def delay_scaled(lam, h_max) -> EndpointRule:

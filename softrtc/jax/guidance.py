@@ -43,8 +43,8 @@ def guidance_prefix_weights(H: int, s, d, variant: str) -> jax.Array:
 
 def _guidance_prefix(H: int, s, d, variant: str) -> jax.Array:
     """:func:`guidance_prefix_weights` of checked arguments (``s``, ``d`` int32)."""
-    return _prefix_jit(H, d, H - s, jnp.int32(SCHEDULES.index(GUIDANCE_SCHEDULES[variant])),
-                       jnp.int32(PARAMETRIZATIONS.index("rtc")))  # [G-1] W: start d, end H - s
+    return _prefix_jit(H, d, H - s, np.int32(SCHEDULES.index(GUIDANCE_SCHEDULES[variant])),
+                       np.int32(PARAMETRIZATIONS.index("rtc")))  # [G-1] W: start d, end H - s
 
 
 def guidance_weight(t, max_guidance=MAX_GUIDANCE) -> jax.Array:

@@ -21,6 +21,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from softrtc.reference import weights as _ref
 
@@ -115,8 +116,8 @@ def prefix_weights(H: int, d, e, schedule: str = "linear", parametrization: str 
     e = v.int_value("e", e, 0, H)
     if not v.is_traced((d, e)) and int(e) < int(d):
         raise ValueError(f"e must be an integer in [{int(d)}, {H}] (e >= d), got {int(e)}")
-    return _prefix_jit(H, d, e, jnp.int32(SCHEDULES.index(schedule)),
-                       jnp.int32(PARAMETRIZATIONS.index(parametrization)))
+    return _prefix_jit(H, d, e, np.int32(SCHEDULES.index(schedule)),
+                       np.int32(PARAMETRIZATIONS.index(parametrization)))
 
 
 def effective_endpoint(H: int, d, e, s=None, overflow: str = "clip") -> jax.Array:
@@ -203,7 +204,7 @@ def _check_s(H, window, s):
     if s is None:
         if window.overflow == "clip":
             raise ValueError("s (execute horizon, 1 <= s <= H) is required when overflow='clip'")
-        return jnp.int32(H)  # unused by overflow="zeros"
+        return np.int32(H)  # unused by overflow="zeros"
     return v.int_value("s", s, 1, H)
 
 
@@ -238,7 +239,7 @@ def soft_weights(H: int, d, window=None, s=None) -> jax.Array:
 
 def _soft_weights(H: int, d, window: SoftWindow, s) -> jax.Array:
     """:func:`soft_weights` of checked arguments (``d``, ``s`` int32)."""
-    kind, scode, pcode, ocode = (jnp.int32(c) for c in _codes(window))
+    kind, scode, pcode, ocode = (np.int32(c) for c in _codes(window))
     r = window.rule
     return _soft_jit(H, d, kind, r.lam, r.h_max, r.length, scode, pcode, ocode, s)  # [W-7]
 
@@ -263,7 +264,7 @@ def weight_table(H: int, window=None, s=None) -> jax.Array:
     H = v.check_horizon(H)
     window = check_window(H, SoftWindow() if window is None else window)
     s = _check_s(H, window, s)
-    kind, scode, pcode, ocode = (jnp.int32(c) for c in _codes(window))
+    kind, scode, pcode, ocode = (np.int32(c) for c in _codes(window))
     r = window.rule
     return _weight_table(H, kind, r.lam, r.h_max, r.length, scode, pcode, ocode, s)
 
