@@ -109,9 +109,11 @@ def report(results_dir: str | Path) -> str:
             f"{progs['bare']['steps_per_s']:.0f} env steps/s, and the evaluation of [KE-1] "
             f"({EVAL_ENV_STEPS:,} env steps) {_fmt(eval_h, '.1f')} h at the slowest rollout's "
             f"{eval_rate:.0f} env steps/s (bench of {bench['num_envs']} envs). Expert training dominates: the "
-            f"full study needs about {_fmt(expert_h / 24, ',.0f')} machine-days of this machine as loaded during "
-            f"these runs (every rate above was measured while other jobs shared the 2 cores, so an idle machine "
-            f"needs less, by the load factor), or the accelerators the release used."]
+            f"full study needs about {_fmt(expert_h / 24, ',.0f')} machine-days of this machine at the PPO rate "
+            f"measured under the conditions stated above, or the accelerators the release used. The data and "
+            f"evaluation rates come from `softrtc kinetix bench` (results/kinetix/bench.json) and hold for the "
+            f"conditions of that run; where the PPO runs shared the machine with other jobs, an idle machine "
+            f"trains faster, by up to the ratio of the bare env's rate there to the PPO rate here."]
     return "\n".join(out) + "\n"
 
 
