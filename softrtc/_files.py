@@ -7,6 +7,7 @@ not at all (temporary file in the same folder, then rename).
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from importlib import resources
@@ -113,3 +114,18 @@ def default_cache_dir() -> Path | None:
         return None if env.strip().lower() in _CACHE_OFF else Path(env.strip()).expanduser()
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base).expanduser() / "softrtc" / "jax"
+
+
+def write_json(path, obj, *, prefix: str = ".softrtc-", allow_nan: bool = False) -> None:
+    """``obj`` as indented JSON with sorted keys, written whole or not at all; its folder is made if missing."""
+    text = json.dumps(obj, indent=1, sort_keys=True, allow_nan=allow_nan) + "\n"
+    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
+    write_atomic(path, lambda f: f.write(text), prefix=prefix)
+
+
+def read_json(path, what: str = "file"):
+    """The JSON value of the existing file ``path`` (``what`` names it in the error) ([N-7])."""
+    if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
+        raise ValueError(f"path must name an existing {what}, got {path!r}")
+    with open(path, encoding="utf-8") as f:
+        return json.load(f)

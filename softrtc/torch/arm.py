@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from softrtc._files import check_out_dir, write_atomic
+from softrtc._files import check_out_dir, read_json, write_json
 
 from . import _validate as v
 from .methods import METHODS, method_weights
@@ -53,13 +53,9 @@ LABELS = {"naive": "Base", "train_hard": "Train Hard RTC", "train_soft": "Train 
 def _arm():
     """The arm package's features, normalizer, config and data helpers (imported when used)."""
     from softrtc.arm import demos, env, executor
-    try:
-        from softrtc.arm.features import FEATURE_DIM, Normalizer, action_bounds, policy_features
-        from softrtc.arm.policy_config import ArmPolicyConfig
-        from softrtc.arm.training import chunk_dataset
-    except ImportError:  # the arm package before its policies module was split
-        from softrtc.arm.policies import (FEATURE_DIM, ArmPolicyConfig, Normalizer, action_bounds,  # noqa: F401
-                                          chunk_dataset, policy_features)
+    from softrtc.arm.features import FEATURE_DIM, Normalizer, action_bounds, policy_features
+    from softrtc.arm.policy_config import ArmPolicyConfig
+    from softrtc.arm.training import chunk_dataset
     return dict(demos=demos, env=env, executor=executor, FEATURE_DIM=FEATURE_DIM, Normalizer=Normalizer,
                 action_bounds=action_bounds, policy_features=policy_features, ArmPolicyConfig=ArmPolicyConfig,
                 chunk_dataset=chunk_dataset)
@@ -357,17 +353,12 @@ def format_table(summary: list) -> str:
 
 def write_results(path, result: dict) -> None:
     """The experiment's result (recipe, protocol, losses, episodes, summary) as JSON, written whole."""
-    text = json.dumps(result, indent=1, sort_keys=True, allow_nan=True) + "\n"
-    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
-    write_atomic(path, lambda f: f.write(text), prefix=".arm-torch-")
+    write_json(path, result, prefix=".arm-torch-", allow_nan=True)
 
 
 def read_results(path) -> dict:
     """A result file of :func:`write_results`; the summary is recomputed from its episodes."""
-    if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
-        raise ValueError(f"path must name an existing result file, got {path!r}")
-    with open(path, encoding="utf-8") as f:
-        res = json.load(f)
+    res = read_json(path, "result file")
     if not isinstance(res, dict) or "episodes" not in res or "protocol" not in res:
         raise ValueError(f"{os.fspath(path)!r} is not a softrtc arm torch result")
     res["summary"] = summarize(res["episodes"], res["protocol"].get("bootstrap_seed", 0))

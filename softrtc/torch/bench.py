@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import math
 import os
 import statistics
@@ -33,7 +32,7 @@ from typing import Callable
 
 import torch
 
-from softrtc._files import write_atomic
+from softrtc._files import read_json as _read_json, write_json as _write_json
 from softrtc._machine import cpu_model  # one copy for JAX and torch ([PT-8])
 
 from . import _validate as v
@@ -283,17 +282,12 @@ def write_json(res: dict, path) -> None:
         raise ValueError("res must be a result of run_benchmark")
     if not isinstance(path, (str, os.PathLike)) or not os.fspath(path) or os.path.isdir(path):
         raise ValueError(f"path must be a file path, got {path!r}")
-    text = json.dumps(res, indent=1, sort_keys=True, allow_nan=False) + "\n"
-    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
-    write_atomic(path, lambda f: f.write(text), prefix=".bench-")
+    _write_json(path, res, prefix=".bench-")
 
 
 def read_json(path) -> dict:
     """A result written by :func:`write_json`; its targets are recomputed from its rows."""
-    if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
-        raise ValueError(f"path must name an existing bench result file, got {path!r}")
-    with open(path, encoding="utf-8") as f:
-        res = json.load(f)
+    res = _read_json(path, "bench result file")
     if not isinstance(res, dict) or not {"config", "chunk", "train", "env", "agreement"} <= set(res):
         raise ValueError(f"{os.fspath(path)!r} is not a softrtc bench torch result")
     res["targets"] = check_targets(res)
