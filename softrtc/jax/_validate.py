@@ -35,8 +35,8 @@ INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 
 def int_value(name: str, value, lo: int | None = None, hi: int | None = None, *,
-              dtype=jnp.int32) -> jax.Array:
-    """A scalar integer argument that may be traced ([N-7]).
+              dtype=jnp.int32) -> jax.Array | np.ndarray:
+    """A scalar integer argument that may be traced ([N-7]); a concrete one comes back as a NumPy scalar array.
 
     Concrete values must be integers in ``[lo, hi]`` (Python ints, NumPy or JAX
     integer scalars; floats and booleans are rejected). Traced values must have
@@ -60,8 +60,9 @@ def int_value(name: str, value, lo: int | None = None, hi: int | None = None, *,
 
 
 def real_value(name: str, value, lo: float | None = None, hi: float | None = None,
-               lo_open: bool = False, hi_open: bool = False) -> jax.Array:
-    """A scalar real argument that may be traced; concrete values are range-checked ([N-7])."""
+               lo_open: bool = False, hi_open: bool = False) -> jax.Array | np.ndarray:
+    """A scalar real argument that may be traced; concrete values are range-checked and come back as a
+    float32 NumPy scalar array ([N-7])."""
     if is_traced(value):
         if jnp.ndim(value) != 0:
             raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(value)}")
