@@ -95,20 +95,25 @@ def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
             return state, obs, (seg, rew, done, solved)
 
         def request(carry, c):
-            state, obs, prev = carry
-            noise_keys, step_keys = request_keys(c)
-            # prior, [X-4] segment: each env with its own delay.
-            new = chunks.next(obs, jexec.shift_prior(prev, s), delays, noise_keys)
-            state, obs, (seg, rew, done, solved) = execute(state, obs, jexec.segment(prev, new, s, delays), step_keys)
-            return (state, obs, new), (seg, new, rew, done, solved)
+            # Segment c executes, then request c + 1 is made at the observation that follows ([X-3],
+            # each env with its own delay). The env's step appears once in the program: its
+            # compilation costs about what the bare env's scan costs ([KC-6]). The chunk of the last
+            # iteration (request C) is not made.
+            state, obs, prev, seg = carry
+            _, step_keys = request_keys(c)
+            state, obs, (seg, rew, done, solved) = execute(state, obs, seg, step_keys)
+            noise_keys, _ = request_keys(c + 1)
+            # After the last segment there is no request to make: its chunk would be dropped.
+            new = jax.lax.cond(c + 1 < C, lambda: chunks.next(obs, jexec.shift_prior(prev, s), delays, noise_keys),
+                               lambda: prev)
+            return (state, obs, new, jexec.segment(prev, new, s, delays)), (seg, new, rew, done, solved)
 
         # Request 0: the naive sampler, no prior, d = 0; its chunk executes its own tokens 0 .. s-1.
-        noise_keys, step_keys = request_keys(jnp.int32(0))
+        noise_keys, _ = request_keys(jnp.int32(0))
         first = chunks.first(obs0, noise_keys)
-        state, obs, out0 = execute(state0, obs0, first[:, :s], step_keys)
-        _, outs = jax.lax.scan(request, (state, obs, first), jnp.arange(1, C, dtype=jnp.int32))
-        segs, chunks_out, rew, done, solved = (jnp.concatenate([a[None], b]) for a, b in
-                                               zip((out0[0], first, *out0[1:]), outs))
+        _, (segs, later, rew, done, solved) = jax.lax.scan(
+            request, (state0, obs0, first, first[:, :s]), jnp.arange(C, dtype=jnp.int32))
+        chunks_out = jnp.concatenate([first[None], later[:-1]])
         n = keys.shape[0]
         N = C * s
         actions = jnp.swapaxes(segs, 0, 1).reshape(n, N, A)  # [C, n, s, A] -> [n, C*s, A]
