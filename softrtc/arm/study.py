@@ -138,7 +138,8 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
     """Run the arm study and write ``results.csv``, ``summary.csv`` and ``traces.png`` to ``out_dir`` ([A-25]).
 
     Trial ``i`` of every method uses env seed ``seed0 + i`` and key
-    ``fold_in(key(key_seed), i)``. Returns ``{"rows", "per_trial", "jitter",
+    ``fold_in(key(key_seed), i)``; the methods run interleaved, trial by
+    trial, in an order rotated by ``i``. Returns ``{"rows", "per_trial", "jitter",
     "table", "paths"}``; ``jitter`` pools the control-loop periods of all
     trials of a method ([R-9]). ``verbose`` prints the table and the jitter
     lines, and with ``announce_files`` the paths written.
@@ -167,16 +168,21 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
     cfg = RuntimeConfig(added_latency_s=added_latency_s)
     base_key = jax.random.key(key_seed)
     per_trial, rows, jitter, first_records, delay_hist = {}, {}, {}, {}, {}
-    csv_rows = []
+    periods = {m: [] for m in methods}
+    delays = {m: [] for m in methods}
     for m in methods:
-        per_trial[m], periods, delays = [], [], []
-        for i in range(trials):
+        per_trial[m] = []
+    csv_rows = []
+    # Interleaved ([A-25]): trial i runs every method in turn, the order rotated by i, so that a change in
+    # the machine's load during the study falls on every method alike.
+    for i in range(trials):
+        for m in methods[i % len(methods):] + methods[:i % len(methods)]:
             rec = run_realtime_episode(policies[m], seed0 + i, jax.random.fold_in(base_key, i), cfg,
                                        max_steps=max_steps)
             met = episode_metrics(rec)
             per_trial[m].append(met)
-            periods.append(rec.periods_s)
-            delays.extend(int(x) for x in rec.realized_delays[1:])
+            periods[m].append(rec.periods_s)
+            delays[m].extend(int(x) for x in rec.realized_delays[1:])
             if i == 0:
                 first_records[m] = rec
             csv_rows.append({"method": m, "trial": i, "env_seed": seed0 + i, **met,
@@ -185,11 +191,13 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
                 print(f"  {METHOD_LABELS.get(m, m):15s} trial {i}: success={met['success']} "
                       f"parts={met['completed']}/4 t={met['duration_s']:.1f}s lat={met['latency_ms']:.1f}ms "
                       f"fault={met['fault']}", flush=True)
+    for m in methods:
         rows[m] = summarize(per_trial[m])
-        allp = np.concatenate([p for p in periods if p.size]) if any(p.size for p in periods) else np.zeros(1)
+        ps = [p for p in periods[m] if p.size]
+        allp = np.concatenate(ps) if ps else np.zeros(1)
         jitter[m] = jitter_summary(allp)
-        jitter[m]["late_rejects"] = sum(x == -2 for x in delays)
-        vals, counts = np.unique([x for x in delays if x >= 0], return_counts=True)
+        jitter[m]["late_rejects"] = sum(x == -2 for x in delays[m])
+        vals, counts = np.unique([x for x in delays[m] if x >= 0], return_counts=True)
         delay_hist[m] = {int(v): int(c) for v, c in zip(vals, counts)}
     table = format_table(rows)
     paths = {"results": str(out / "results.csv"), "summary": str(out / "summary.csv")}

@@ -351,7 +351,8 @@ def test_arm_train_config_and_shipped_checkpoints_follow_the_spec():
 
 
 def test_train_arm_policies_small_run(tmp_path):
-    """A-20, A-18, T-8, T-9: demos, base and both fine-tunes end to end; only the checkpoints are written to out."""
+    """A-20, A-18, T-8, T-9, AX-8: demos, base and both fine-tunes end to end; only the checkpoints are written to
+    out; a base alone from a task's world."""
     from softrtc.arm.checkpoints import load_arm_checkpoint
     from softrtc.arm.training import arm_train_config, train_arm_policies
 
@@ -373,15 +374,26 @@ def test_train_arm_policies_small_run(tmp_path):
 
     leaves = {m: jax.tree_util.tree_leaves(nnx.state(load_arm_checkpoint(p).model)) for m, p in paths.items()}
     assert any(not np.array_equal(a, b) for a, b in zip(leaves["naive"], leaves["train_hard"]))
+    # AX-8: the base alone, from demonstrations recorded in a task's world.
+    from softrtc.arm.tasks import DRIFT_CONFIG
+
+    only = train_arm_policies(tmp_path / "drift", episodes=1, steps=2, seed=5, config=CFG, batch_size=8,
+                              verbose=False, env_config=DRIFT_CONFIG, fine_tune=False)
+    assert set(only) == {"naive"} and sorted(p.name for p in (tmp_path / "drift").iterdir()) == ["base.npz"]
+    drift_base = load_arm_checkpoint(only["naive"])
+    # Trained on other observations (the trays' world): other feature statistics than the default world's base.
+    assert not np.allclose(drift_base.normalizer.obs_mean, load_arm_checkpoint(paths["naive"]).normalizer.obs_mean)
     for bad, msg in ((dict(batch_size=0), "batch_size"), (dict(out_dir=3), "out_dir"), (dict(episodes=0), "episodes"),
-                     (dict(demos=tmp_path / "missing.npz"), "demos")):
+                     (dict(demos=tmp_path / "missing.npz"), "demos"), (dict(env_config=3), "env_config"),
+                     (dict(fine_tune=1), "fine_tune")):
         kw = {"out_dir": tmp_path, "episodes": 1, "steps": 1, "config": CFG, "verbose": False, **bad}
         with pytest.raises(ValueError, match=f"^{msg}"):
             train_arm_policies(**kw)
 
 
 def test_run_study_seeds_keys_and_csv_columns(tmp_path, monkeypatch):
-    """A-25, A-24, R-2, N-9: trial i of every method uses env seed seed0 + i and key fold_in(key(key_seed), i)."""
+    """A-25, A-24, R-2, N-9: trial i of every method uses env seed seed0 + i and key fold_in(key(key_seed), i);
+    the methods run interleaved, trial by trial, in an order rotated by i (A-25)."""
     import csv
 
     from softrtc.arm import study
@@ -404,7 +416,7 @@ def test_run_study_seeds_keys_and_csv_columns(tmp_path, monkeypatch):
     monkeypatch.setattr(study, "run_realtime_episode", recording)
     out = study.run_study(ckpt, trials=2, methods=("naive", "train_soft"), added_latency_s=0.0, seed0=123,
                           key_seed=7, out_dir=tmp_path / "out", max_steps=12, plot=False, verbose=False)
-    assert [(c[0], c[1]) for c in calls] == [("naive", 123), ("naive", 124), ("train_soft", 123), ("train_soft", 124)]
+    assert [(c[0], c[1]) for c in calls] == [("naive", 123), ("train_soft", 123), ("train_soft", 124), ("naive", 124)]
     for method, env_seed, key, cfg, max_steps, rec in calls:
         i = env_seed - 123
         want = jax.random.fold_in(jax.random.key(7), i)
@@ -419,7 +431,7 @@ def test_run_study_seeds_keys_and_csv_columns(tmp_path, monkeypatch):
                              "throughput", "D1", "D2", "D3", "boundary", "latency_ms", "hold_ticks", "fault",
                              "mean_realized_delay"]
     assert [(r["method"], r["trial"], r["env_seed"]) for r in rows] == [
-        ("naive", "0", "123"), ("naive", "1", "124"), ("train_soft", "0", "123"), ("train_soft", "1", "124")]
+        ("naive", "0", "123"), ("train_soft", "0", "123"), ("train_soft", "1", "124"), ("naive", "1", "124")]
     with open(out["paths"]["summary"]) as f:
         summary = list(csv.DictReader(f))
     stats = [x for k in ("completion", "throughput", "D1", "D2", "D3", "boundary", "latency_ms", "hold_ticks")
@@ -478,7 +490,8 @@ def test_policy_window_and_chunk_dataset_inputs_are_checked():
 
 
 def test_arm_train_command_never_defaults_to_the_shipped_checkpoints(tmp_path, monkeypatch):
-    """A-20, A-21: `softrtc arm train` writes to ./arm_checkpoints unless --out names another folder."""
+    """A-20, A-21, AX-8: `softrtc arm train` writes to ./arm_checkpoints unless --out names another folder; --task
+    and --base-only pass the task's world and the base alone."""
     from pathlib import Path
 
     from softrtc.arm import checkpoints, training
@@ -491,5 +504,13 @@ def test_arm_train_command_never_defaults_to_the_shipped_checkpoints(tmp_path, m
     seen = {}
     monkeypatch.setattr(training, "train_arm_policies", lambda out, **kw: seen.update(out=out, **kw) or {})
     assert args.func(args) == 0
-    assert seen == {"out": "arm_checkpoints", "episodes": 400, "steps": 4000, "finetune_steps": 800, "seed": 0}
+    from softrtc.arm.env import ArmConfig
+    from softrtc.arm.tasks import DRIFT_CONFIG
+
+    assert seen == {"out": "arm_checkpoints", "episodes": 400, "steps": 4000, "finetune_steps": 800, "seed": 0,
+                    "env_config": ArmConfig(), "fine_tune": True}
+    # AX-8: a task's world and the base alone.
+    args = build_parser().parse_args(["arm", "train", "--task", "drift", "--base-only"])
+    assert args.func(args) == 0
+    assert seen["env_config"] == DRIFT_CONFIG and seen["fine_tune"] is False
     assert build_parser().parse_args(["arm", "train", "--out", str(tmp_path / "x")]).out == str(tmp_path / "x")
