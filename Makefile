@@ -1,6 +1,6 @@
 # Two entry points that do all set-up on a fresh machine:
 #   make demo   creates .venv, installs softrtc with every extra, runs the main job
-#   make test   creates .venv, installs (LeRobot's RTC modules too), runs the whole test suite
+#   make test   creates .venv, installs (LeRobot's RTC modules too), runs the whole test suite on two workers
 PYTHON ?= python3.11
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -31,8 +31,10 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/softrtc demo
 
+# Two pytest-xdist workers, one per core of the 2-core machines the suite is sized for; whole files go to one
+# worker (module fixtures are built once) and conftest.py hands out the files with slow tests first.
 test: $(STAMP) $(LEROBOT_STAMP)
-	SOFTRTC_REQUIRE_ALL=1 $(PY) -m pytest -q
+	SOFTRTC_REQUIRE_ALL=1 $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 clean:
 	rm -rf $(VENV)

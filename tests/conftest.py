@@ -14,6 +14,19 @@ os.environ.setdefault("SOFTRTC_JAX_CACHE",
                                    "softrtc-jax"))
 
 
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist, files holding a test marked ``slow`` come first, each file's tests in their order.
+
+    `make test` hands whole files to two workers in collection order: the long files started first leave
+    the short ones to fill both workers at the end instead of one long file running on alone. A run in one
+    process keeps pytest's order.
+    """
+    if not hasattr(config, "workerinput"):
+        return
+    slow = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.path not in slow)  # stable: file order and test order otherwise kept
+
+
 # The one skip that SOFTRTC_REQUIRE_ALL=1 tolerates: the benchmark levels are data outside this
 # repository. Tests skip with exactly this reason; any other skip (a missing package) fails the run.
 SHARED_LEVELS_REASON = "needs the benchmark levels in ../shared/kinetix-levels"
