@@ -32,6 +32,11 @@ def add_subparsers(subparsers) -> None:
                     help="RTC fine-tune steps (default 800)")
     tr.add_argument("--seed", type=int_in("value", 0, SEED_MAX - 2), default=0,
                     help=f"seed of demos and training, 0 .. {SEED_MAX - 2} (default 0)")
+    from .tasks import TASKS
+
+    tr.add_argument("--task", choices=tuple(TASKS), default="easy",
+                    help="the world the demonstrations are recorded in (default easy, the default world)")
+    tr.add_argument("--base-only", action="store_true", help="train and write base.npz only (no fine-tunes)")
     tr.set_defaults(func=_train)
 
     st = sub.add_parser("study", help="real-time study table, CSV and joint-trace plot ([A-25])")
@@ -61,8 +66,11 @@ def add_subparsers(subparsers) -> None:
 def _train(args) -> int:
     from .training import train_arm_policies
 
+    from .tasks import get_task
+
     paths = train_arm_policies(args.out, episodes=args.episodes, steps=args.steps, finetune_steps=args.finetune_steps,
-                               seed=args.seed)
+                               seed=args.seed, env_config=get_task(args.task).env_config,
+                               fine_tune=not args.base_only)
     for m, p in paths.items():
         print(f"{m}: {p}")
     return 0

@@ -134,8 +134,18 @@ class ArmSortEnv:
         targets = [float(x) for x in self._targets]
         pairs = list(zip(sc.links, sc.motors, targets))
         space = sc.space
+        boxes = sc.box_bodies
+        for b, hops in enumerate(sc.hops):
+            # a hop starting at this step's tick sets the box's new destination.
+            if self._t in hops:
+                sc.box_goals[b] = hops[self._t]
         # Plain floats here: this loop dominates the cost of an episode.
         for _ in range(cfg.substeps):
+            for b, body in enumerate(boxes):
+                # Toward the destination at box_hop_speed, landing on it exactly within a substep.
+                v = (sc.box_goals[b] - body.position.x) / h
+                speed = cfg.box_hop_speed
+                body.velocity = (speed if v > speed else (-speed if v < -speed else v), 0.0)
             prev = -math.pi / 2
             for body, motor, target in pairs:
                 angle = body.angle
@@ -145,6 +155,8 @@ class ArmSortEnv:
                 # pymunk's SimpleMotor drives b.w - a.w to -rate.
                 motor.rate = -rate
             space.step(h)
+        for b, body in enumerate(boxes):
+            sc.box_centers[b] = body.position.x
         self._t += 1
         completed = self.completed()
         success = bool(all(completed))

@@ -304,13 +304,16 @@ def measure_prior_error(base_ckpt, task: ArmTask, episodes: int, max_steps: int,
 # --------------------------------------------------------------------------- fine-tunes
 
 
-def _demos(work: Path, budget: Budget, seed: int = 0):
+def _demos(work: Path, budget: Budget, task: ArmTask, seed: int = 0):
     from .demos import generate_demos, load_demos
+    from .env import ArmConfig
 
-    path = work / f"demos_{budget.demo_episodes}_{seed}.npz"
+    # Tasks in the default world share one demo file; a task with its own world ([AX-8]) has its own.
+    tag = "" if task.env_config == ArmConfig() else f"{task.name}_"
+    path = work / f"demos_{tag}{budget.demo_episodes}_{seed}.npz"
     if not path.is_file():
-        tmp = work / "demos.part.npz"
-        generate_demos(budget.demo_episodes, seed, 0.03, str(tmp))
+        tmp = work / f"demos_{tag}.part.npz"
+        generate_demos(budget.demo_episodes, seed, 0.03, str(tmp), env_config=task.env_config)
         os.replace(tmp, path)
     return load_demos(str(path))
 
@@ -390,9 +393,12 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
     ep_dir.mkdir(parents=True, exist_ok=True)
     work_dir = Path(work) / task.name / budget_name
     work_dir.mkdir(parents=True, exist_ok=True)
-    from .checkpoints import default_checkpoint_dir, load_arm_checkpoint
+    from .checkpoints import load_arm_checkpoint
 
-    base_path = default_checkpoint_dir() / "base.npz"
+    # Every fine-tune of a task starts from the task's base ([AX-3], [AX-8]).
+    base_path = task.base_checkpoint()
+    if not base_path.is_file():
+        raise ValueError(f"task {task.name!r} has no base checkpoint at {base_path}")
     manifest_path = out_dir / "manifest.json"
     manifest = {"task": task.name, "execute_horizon": task.execute_horizon, "H": H, "budget": budget_name,
                 "budget_values": dataclasses.asdict(budget), "seed0": seed0, "key_seed": key_seed,
@@ -440,7 +446,7 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
                 if not ckpt.is_file():
                     if base is None:
                         base = load_arm_checkpoint(base_path)
-                        data = _demos(Path(work), budget)
+                        data = _demos(Path(work), budget, task)
                     log(f"[{task.name}] fine-tune {tag} ({r.name}, {budget.finetune_steps} steps)")
                     # One file per fine-tune: runs in parts may fine-tune in parallel processes.
                     rec = _finetune(key, r, task, sd, budget, data, base, sigma, ckpt)

@@ -107,7 +107,8 @@ class ScriptedExpert:
             # Closed on nothing: open first so the next close can grasp.
             return self._action(q, ee, ee, 0.0)
 
-        todo = [i for i in range(NUM_OBJECTS) if objs[i, 4] < 0.5]
+        # A part below the table top fell beside the table and the trays, out of reach ([A-27]): skipped.
+        todo = [i for i in range(NUM_OBJECTS) if objs[i, 4] < 0.5 and objs[i, 1] >= 0.0]
         if not todo:
             return self._action(q, ee, np.array([ee[0], max(ee[1], cfg.carry_height)]), 0.0)
         k = todo[0]

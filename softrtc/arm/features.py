@@ -19,6 +19,7 @@ __all__ = ["FEATURE_DIM", "action_bounds", "policy_features", "Normalizer"]
 # network switch parts after a placement instead of averaging the phases.
 FEATURE_DIM = OBS_DIM + NUM_OBJECTS + 4
 _PLACED = np.array([10 + 5 * k + 4 for k in range(NUM_OBJECTS)])
+_Y = np.array([10 + 5 * k + 1 for k in range(NUM_OBJECTS)])
 _BOX_OF = np.array(OBJECT_TARGET_BOX)
 
 def action_bounds(env_config: ArmConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -34,14 +35,15 @@ def policy_features(obs) -> np.ndarray:
     """Policy input ``[..., FEATURE_DIM]`` from observations ``[..., 34]`` ([A-17]).
 
     The observation, then a one-hot of the current part (the first whose placed
-    flag is not set; all zeros once every part is placed), then the current
-    part's ``(x, y)`` and its box's ``(centre x, floor y)`` minus the gripper
-    tip (zeros once every part is placed).
+    flag is not set and that is not below the table top; all zeros once every
+    part is placed or out of play), then the current part's ``(x, y)`` and its
+    box's ``(centre x, floor y)`` minus the gripper tip (zeros once none is left).
     """
     o = _real_array("obs", obs)
     if o.ndim < 1 or o.shape[-1] != OBS_DIM or o.size == 0 or not np.all(np.isfinite(o)):
         raise ValueError(f"obs must be a finite array of shape [..., {OBS_DIM}], got shape {list(o.shape)}")
-    todo = o[..., _PLACED] < 0.5
+    # A part below the table top fell out of reach ([A-27]) and is out of play, as for the expert ([A-13]).
+    todo = (o[..., _PLACED] < 0.5) & (o[..., _Y] >= 0.0)
     left = todo.any(-1, keepdims=True)
     k = np.argmax(todo, -1)
     onehot = np.eye(NUM_OBJECTS)[k] * left

@@ -71,6 +71,11 @@ class ArmConfig:
     box_wall_height: float = 0.05
     box_wall_thickness: float = 0.01
     home_ee: tuple[float, float] = (0.0, 0.25)
+    # moving boxes: 0 keeps them static (every task but ``drift``).
+    box_hop_range: float = 0.0  # m: each hop's destination lies within +-range of the box's start centre
+    box_hop_speed: float = 0.5  # m/s: speed of a box while it hops
+    box_hop_interval: tuple[int, int] = (25, 75)  # control ticks between hop starts, drawn uniformly inclusive
+    tray_rim_height: float = 0.005  # m: wall height of a moving tray (static boxes use box_wall_height)
 
     def __post_init__(self):
         _validate_config(self)  # every field at construction, like the other config classes ([A-12])
@@ -134,7 +139,7 @@ def _validate_config(cfg: ArmConfig) -> None:
     for name in ("motor_gain", "motor_max_rate", "motor_max_force", "grasp_radius", "link_radius",
                  "object_friction", "box_wall_height", "box_wall_thickness", "table_half_width"):
         _real(name, getattr(cfg, name), 0.0, strict=True)
-    for name in ("object_min_gap", "box_center_jitter"):
+    for name in ("object_min_gap", "box_center_jitter", "box_hop_range"):
         _real(name, getattr(cfg, name), 0.0)
     _reals("link_lengths", cfg.link_lengths, NUM_JOINTS, 0.0, strict=True)
     _reals("link_masses", cfg.link_masses, NUM_JOINTS, 0.0, strict=True)
@@ -154,6 +159,13 @@ def _validate_config(cfg: ArmConfig) -> None:
     _reals("box_centers", cfg.box_centers, 2)
     _reals("box_inner_widths", cfg.box_inner_widths, 2, 0.0, strict=True)
     _reals("home_ee", cfg.home_ee, 2)
+    _real("box_hop_speed", cfg.box_hop_speed, 0.0, strict=True)
+    _real("tray_rim_height", cfg.tray_rim_height, 0.0, strict=True)
+    gap = cfg.box_hop_interval
+    if not isinstance(gap, (tuple, list)) or len(gap) != 2:
+        raise ValueError(f"config.box_hop_interval must be 2 integers 1 <= low <= high (ticks), got {gap!r}")
+    check_int("config.box_hop_interval[0]", gap[0], 1, None)
+    check_int("config.box_hop_interval[1]", gap[1], gap[0], None)
     _validate_layout(cfg)
 
 
@@ -171,13 +183,18 @@ def _validate_layout(cfg: ArmConfig) -> None:
     if hi - lo < need:
         raise ValueError(f"config.object_x_range is too narrow: high - low must be >= {need!r} for the parts of "
                          f"config.object_sizes with config.object_min_gap, got {cfg.object_x_range!r}")
-    # Boxes stand on the table for every jitter draw, and the two never overlap.
+    # Static boxes stand on the table for every jitter draw; moving trays stay beside it ([A-27]); the two
+    # never overlap.
     spans = []
     for i, (c, inner) in enumerate(zip(cfg.box_centers, cfg.box_inner_widths)):
-        reach = inner / 2 + cfg.box_wall_thickness + cfg.box_center_jitter
-        if c - reach < -half or c + reach > half:
+        reach = inner / 2 + cfg.box_wall_thickness + cfg.box_center_jitter + cfg.box_hop_range
+        if cfg.box_hop_range == 0 and (c - reach < -half or c + reach > half):
             raise ValueError(f"config.box_centers[{i}] = {c!r} puts box {i} off the table: |centre| + inner width / 2 "
                              f"+ wall thickness + jitter must be <= table_half_width = {half!r}")
+        if cfg.box_hop_range > 0 and abs(c) - reach < half:
+            raise ValueError(f"config.box_centers[{i}] = {c!r} lets moving tray {i} reach over the table: |centre| - "
+                             f"inner width / 2 - wall thickness - jitter - hop range must be >= table_half_width = "
+                             f"{half!r}")
         spans.append((c - reach, c + reach))
     if spans[0][0] < spans[1][1] and spans[1][0] < spans[0][1]:
         raise ValueError(f"config.box_centers {cfg.box_centers!r} make the two boxes overlap (walls and jitter "

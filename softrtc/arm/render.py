@@ -17,10 +17,13 @@ def render_scene(scene: Scene, cfg: ArmConfig, ax=None):
     if ax is None:
         _, ax = plt.subplots(figsize=(8, 4))
     ax.plot([-cfg.table_half_width, cfg.table_half_width], [0, 0], "k-")
+    top = cfg.tray_rim_height if scene.box_bodies else cfg.box_wall_height  # moving trays have low rims ([A-27])
     for cx, inner, color in zip(scene.box_centers, cfg.box_inner_widths, ("tab:blue", "gray")):
         for side in (-1, 1):
             x = cx + side * (inner / 2 + cfg.box_wall_thickness / 2)
-            ax.plot([x, x], [0, cfg.box_wall_height], color=color, lw=3)
+            ax.plot([x, x], [0, top], color=color, lw=3)
+        if scene.box_bodies:
+            ax.plot([x - inner - cfg.box_wall_thickness, x], [0, 0], color=color, lw=2)
     pts = [np.array(cfg.base)]
     for b, length in zip(scene.links, cfg.link_lengths):
         p = b.local_to_world((length, 0))

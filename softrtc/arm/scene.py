@@ -18,7 +18,10 @@ import pymunk
 
 from .geometry import NUM_JOINTS, NUM_OBJECTS, ArmConfig, _ik
 
-__all__ = ["Scene", "build_scene", "sample_part_x", "PLACEMENT_ATTEMPTS"]
+__all__ = ["Scene", "build_scene", "hop_schedule", "sample_part_x", "PLACEMENT_ATTEMPTS", "BIN_Y"]
+
+# [A-27] top of the bin under a table with moving trays (m): below the arm's reach.
+BIN_Y = -0.4
 
 # [A-5] attempts of the part placement before reset gives up.
 PLACEMENT_ATTEMPTS = 10_000
@@ -42,6 +45,11 @@ class Scene:
     box_centers: np.ndarray
     grasp: list = field(default_factory=list)
     held: int = -1
+    # [A-27] moving boxes: a kinematic body per box, its hop schedule (start tick -> destination x) and the
+    # destination it is moving to; empty and unused while the boxes are static.
+    box_bodies: list = field(default_factory=list)
+    hops: list = field(default_factory=list)
+    box_goals: np.ndarray | None = None
 
 
 def build_scene(cfg: ArmConfig, rng: np.random.Generator) -> tuple[Scene, np.ndarray]:
@@ -59,13 +67,29 @@ def build_scene(cfg: ArmConfig, rng: np.random.Generator) -> tuple[Scene, np.nda
     # Boxes: two walls standing on the table; the table is the box floor.
     centers = np.array(cfg.box_centers, dtype=np.float64) + rng.uniform(
         -cfg.box_center_jitter, cfg.box_center_jitter, size=2)
+    moving = cfg.box_hop_range > 0
+    box_bodies = []
     for cx, inner in zip(centers, cfg.box_inner_widths):
+        # Static boxes keep their walls on the static body, so the default scene is unchanged by [A-27].
+        if moving:
+            # A tray: kinematic body carrying its own floor (top at y = 0) and walls ([A-27]).
+            body = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
+            body.position = (float(cx), 0.0)
+            reach = inner / 2 + cfg.box_wall_thickness
+            floor = pymunk.Segment(body, (-reach, -0.01), (reach, -0.01), 0.01)
+            floor.friction = 1.0
+            floor.filter = _WORLD_FILTER
+            space.add(body, floor)
+            box_bodies.append(body)
+            owner, x0, top = body, 0.0, cfg.tray_rim_height
+        else:
+            owner, x0, top = static, cx, cfg.box_wall_height
         for side in (-1.0, 1.0):
-            x = cx + side * (inner / 2 + cfg.box_wall_thickness / 2)
-            wall = pymunk.Poly(static, [
+            x = x0 + side * (inner / 2 + cfg.box_wall_thickness / 2)
+            wall = pymunk.Poly(owner, [
                 (x - cfg.box_wall_thickness / 2, 0.0), (x + cfg.box_wall_thickness / 2, 0.0),
-                (x + cfg.box_wall_thickness / 2, cfg.box_wall_height),
-                (x - cfg.box_wall_thickness / 2, cfg.box_wall_height)])
+                (x + cfg.box_wall_thickness / 2, top),
+                (x - cfg.box_wall_thickness / 2, top)])
             wall.friction = 0.8
             wall.filter = _WORLD_FILTER
             space.add(wall)
@@ -106,7 +130,38 @@ def build_scene(cfg: ArmConfig, rng: np.random.Generator) -> tuple[Scene, np.nda
         shape.filter = _OBJECT_FILTER
         space.add(body, shape)
         objects.append((body, shape))
-    return Scene(space, links, motors, objects, centers), q0
+    scene = Scene(space, links, motors, objects, centers)
+    if moving:
+        # Beside the table and the trays there is nothing: a part that misses falls into a bin out of reach.
+        bin_ = pymunk.Segment(static, (-2.0, BIN_Y - 0.01), (2.0, BIN_Y - 0.01), 0.01)
+        bin_.friction = 1.0
+        bin_.filter = _WORLD_FILTER
+        space.add(bin_)
+        scene.box_bodies = box_bodies
+        scene.hops = hop_schedule(cfg, centers, rng)
+        scene.box_goals = centers.copy()
+    return scene, q0
+
+
+def hop_schedule(cfg: ArmConfig, centers: np.ndarray, rng: np.random.Generator) -> list:
+    """Per box, the hops of a whole episode: ``{start tick: destination x}`` ([A-27]).
+
+    Drawn after the part placement, box 0 first: each gap to the next hop start
+    is an integer uniform on ``box_hop_interval`` (inclusive), then its
+    destination is uniform on ``centre +- box_hop_range``; draws stop at the
+    first start at or past ``max_steps``.
+    """
+    lo, hi = cfg.box_hop_interval
+    out = []
+    for c in centers:
+        hops, t = {}, 0
+        while True:
+            t += int(rng.integers(lo, hi + 1))
+            if t >= cfg.max_steps:
+                break
+            hops[t] = float(c + rng.uniform(-cfg.box_hop_range, cfg.box_hop_range))
+        out.append(hops)
+    return out
 
 
 def sample_part_x(cfg: ArmConfig, rng: np.random.Generator) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Arm task settings of the experiment: ``easy`` and ``overlap4`` ([AX-1]).
+"""Arm task settings of the experiment: ``easy``, ``overlap4`` and ``drift`` ([AX-1], [AX-8]).
 
 A task is an environment config plus the execute horizon ``s`` the policies
 run with (the chunk horizon stays ``H = 10``, so the shipped base policy,
@@ -11,7 +11,10 @@ overlap 4, delays ``0 .. 4``), so the paper's window (``lam = 2``,
 and every chunk executes six ticks open loop, more of them from an older plan
 as the delay grows. Neither setting is delay-sensitive for the base policy
 (measured in [AX-1]: the naive base solves about as often at the largest
-delay as at ``d = 0``); a delay-sensitive arm task is still to be found.
+delay as at ``d = 0``). ``drift`` is: its boxes are trays that hop at random
+times ([A-27]), so a plan made before a hop releases the part where the tray
+was, and a part that misses a tray falls out of reach ([AX-8]); it has its own
+demonstrations and base (``checkpoints/drift/base.npz``).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import dataclasses
 
 from .env import ArmConfig
 
-__all__ = ["ArmTask", "TASKS", "get_task"]
+__all__ = ["ArmTask", "TASKS", "DRIFT_CONFIG", "get_task"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,6 +34,8 @@ class ArmTask:
     execute_horizon: int
     env_config: ArmConfig = dataclasses.field(default_factory=ArmConfig)
     description: str = ""
+    # Folder of the task's base under the shipped checkpoints ("" = the shipped base of [A-21]).
+    checkpoint_subdir: str = ""
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -40,6 +45,16 @@ class ArmTask:
             raise ValueError(f"execute_horizon must be an integer in [1, 9] (H = 10), got {self.execute_horizon!r}")
         if not isinstance(self.env_config, ArmConfig):
             raise ValueError(f"env_config must be an ArmConfig, got {type(self.env_config).__name__}")
+        if not isinstance(self.checkpoint_subdir, str) or "/" in self.checkpoint_subdir \
+                or self.checkpoint_subdir in (".", ".."):
+            raise ValueError(f"checkpoint_subdir must be a folder name or '', got {self.checkpoint_subdir!r}")
+
+    def base_checkpoint(self):
+        """The task's shipped base checkpoint ([A-21], [AX-8]), read through the package's data folder."""
+        from .checkpoints import default_checkpoint_dir
+
+        return default_checkpoint_dir() / self.checkpoint_subdir / "base.npz" if self.checkpoint_subdir \
+            else default_checkpoint_dir() / "base.npz"
 
     @property
     def max_delay(self) -> int:
@@ -47,9 +62,15 @@ class ArmTask:
         return min(self.execute_horizon, 10 - self.execute_horizon)
 
 
+# [AX-8] moving trays: the table is the pick region only, parts start nearer its middle, the trays hop.
+DRIFT_CONFIG = ArmConfig(table_half_width=0.17, object_x_range=(-0.13, 0.13), object_min_gap=0.015,
+                         box_center_jitter=0.0, box_inner_widths=(0.18, 0.12), box_hop_range=0.06,
+                         box_hop_speed=0.3, box_hop_interval=(7, 28), tray_rim_height=0.005)
+
 TASKS = {
     "easy": ArmTask("easy", 5, ArmConfig(), "the study's setting: s = 5, delays 0..5"),
     "overlap4": ArmTask("overlap4", 6, ArmConfig(), "s = 6, overlap 4, delays 0..4 (the paper's overlap geometry)"),
+    "drift": ArmTask("drift", 5, DRIFT_CONFIG, "hopping trays: s = 5, delays 0..5, its own base", "drift"),
 }
 
 

@@ -21,6 +21,7 @@ from softrtc.reference.weights import SoftWindow as RefSoftWindow
 from ._checks import check_number
 from .checkpoints import CKPT_FILES, save_arm_checkpoint
 from .env import ACTION_DIM, OBS_DIM
+from .geometry import _check_env_config
 from .features import FEATURE_DIM, Normalizer, _real_array, _rows, policy_features
 from .policy_config import TRAIN_METHODS, ArmPolicyConfig, new_model
 
@@ -140,7 +141,7 @@ _DEMO_KEYS = ("obs", "action", "episode_start", "episode_length", "seed", "noise
 def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune_steps: int | None = 800,
                        seed: int = 0, noise_std: float = 0.03, config: ArmPolicyConfig = ArmPolicyConfig(),
                        batch_size: int = 128, learning_rate: float = 1e-3, demos=None,
-                       verbose: bool = True) -> dict:
+                       verbose: bool = True, env_config=None, fine_tune: bool = True) -> dict:
     """Demos, base BC policy, then Train Hard / Train Soft RTC fine-tunes, saved to ``out_dir`` ([A-20]).
 
     Demonstrations: ``generate_demos(episodes, seed, noise_std)`` ([A-15])
@@ -151,7 +152,9 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
     seed ``seed``; each fine-tune starts from the base and runs
     ``finetune_steps`` (``None``: ``steps // 4``) with seed ``seed + 1`` (hard)
     and ``seed + 2`` (soft), learning rate ``learning_rate / 3``. Training is
-    :func:`train_flow_policy` ([T-9]). Returns ``{method: path}``.
+    :func:`train_flow_policy` ([T-9]). ``env_config`` is the environment the
+    demonstrations are recorded in (default: the default :class:`ArmConfig`);
+    ``fine_tune=False`` trains and writes the base only. Returns ``{method: path}``.
     """
     from .demos import generate_demos, load_demos
 
@@ -167,6 +170,9 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
     learning_rate = check_number("learning_rate", learning_rate, 0.0, 1.0, lo_open=True)
     if not isinstance(config, ArmPolicyConfig):
         raise ValueError(f"config must be an ArmPolicyConfig, got {type(config).__name__}")
+    env_config = _check_env_config(env_config, "env_config")
+    if not isinstance(fine_tune, bool):
+        raise ValueError(f"fine_tune must be a bool, got {fine_tune!r}")
     out = check_out_dir("out_dir", out_dir)
     data = None
     if demos is not None:
@@ -195,7 +201,7 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
         # temporary folder of this call, so no file of out_dir but the three checkpoints is written or removed.
         with tempfile.TemporaryDirectory(prefix="softrtc-arm-demos-") as tmp:
             demo_path = Path(tmp) / "demos.npz"
-            info = generate_demos(episodes, seed, noise_std, str(demo_path))
+            info = generate_demos(episodes, seed, noise_std, str(demo_path), env_config=env_config)
             data = load_demos(str(demo_path))
         if verbose:
             print(f"demos: {info['episodes']} episodes, {info['steps']} steps, expert success "
@@ -215,7 +221,7 @@ def train_arm_policies(out_dir, episodes: int = 400, steps: int = 4000, finetune
                                          learning_rate=learning_rate, progress=verbose)
     paths = {"naive": save_arm_checkpoint(out / CKPT_FILES["naive"], base, norm, config, "naive", meta, tc)}
     report("naive", losses)
-    for i, m in enumerate(("train_hard", "train_soft")):
+    for i, m in enumerate(("train_hard", "train_soft") if fine_tune else ()):
         # Fine-tuning starts from trained weights: a lower peak rate keeps it from undoing the base.
         ft, losses, tc = train_flow_policy(ds, norm, m, finetune_steps, seed + 1 + i, config=config, init=base,
                                            batch_size=batch_size, learning_rate=learning_rate / 3,

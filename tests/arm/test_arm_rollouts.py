@@ -439,6 +439,10 @@ def test_run_study_seeds_keys_and_csv_columns(tmp_path, monkeypatch):
     assert list(summary[0]) == ["method", "trials", "successes", "objects", "objects_total", *stats, "faults",
                                 "period_p50_ms", "period_p99_ms"]
     assert [r["method"] for r in summary] == ["naive", "train_soft"] and summary[0]["trials"] == "2"
+    # The table read back from results.csv is the one the run printed (the README's block is made this way).
+    assert study.table_from_results(out["paths"]["results"]) == out["table"]
+    with pytest.raises(ValueError, match="^path"):
+        study.table_from_results(out["paths"]["summary"])
     assert set(out["paths"]) == {"results", "summary"}
 
 
