@@ -39,6 +39,14 @@ def add_experiment_parsers(sub) -> None:
     ex.add_argument("--report", action="store_true", help="write REPORT.md and plots afterwards")
     ex.set_defaults(func=_experiment)
 
+    sc = sub.add_parser("screen", help="delay screen of a task: the scripted expert closed loop and as a chunk "
+                                       "policy under each delay ([AX-8])")
+    sc.add_argument("--task", choices=tuple(TASKS), default="drift", help="task setting (default drift)")
+    sc.add_argument("-n", type=int_in("value", 1, 100000), default=24, help="paired env seeds (default 24)")
+    sc.add_argument("--seed0", type=int_in("value", 0, 2**31 - 1), default=10_000,
+                    help="first env seed (default 10000, the experiment's)")
+    sc.set_defaults(func=_screen)
+
     rp = sub.add_parser("report", help="REPORT.md, summary.json and plots from the experiment's result files ([AX-6])")
     rp.add_argument("--results", default="results/arm", help="results folder (default results/arm)")
     rp.add_argument("--readme", default=None, help="also regenerate the arm table of this README")
@@ -58,6 +66,21 @@ def _experiment(args) -> int:
         from .report import write_report
 
         print(write_report(args.out))
+    return 0
+
+
+def _screen(args) -> int:
+    from .expert import run_expert_episode
+    from .expert_chunks import delay_screen
+    from .tasks import get_task
+
+    task = get_task(args.task)
+    seeds = range(args.seed0, args.seed0 + args.n)
+    closed = sum(run_expert_episode(sd, task.env_config)["success"] for sd in seeds)
+    print(f"task {task.name}: closed-loop expert solves {closed}/{args.n}")
+    for d, v in delay_screen(task.env_config, task.execute_horizon, range(task.max_delay + 1), seeds).items():
+        print(f"  chunked expert (s = {task.execute_horizon}) d = {d}: success {v['success']:.2f}, "
+              f"completion {v['completion']:.2f}")
     return 0
 
 

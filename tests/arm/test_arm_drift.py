@@ -214,3 +214,23 @@ def test_experiment_on_drift_starts_from_its_base(tmp_path):
     (cell,) = (tmp_path / "res" / "drift" / "episodes").glob("*_d5.csv")
     (ep,) = read_episodes(cell)
     assert (ep["delay"], ep["env_seed"], ep["steps"]) == (5, 10000, 60)
+
+
+def test_screen_command_runs_the_tasks_screen(monkeypatch, capsys):
+    """AX-8: `softrtc arm screen --task drift -n 3` runs the closed-loop expert and the chunked expert on env seeds
+    10000..10002 in the task's world, at the task's s and every executable delay."""
+    from softrtc.arm import expert, expert_chunks
+    from softrtc.cli import build_parser
+
+    seen = {"closed": []}
+    monkeypatch.setattr(expert, "run_expert_episode",
+                        lambda sd, cfg: seen["closed"].append((sd, cfg)) or {"success": sd != 10001})
+    monkeypatch.setattr(expert_chunks, "delay_screen",
+                        lambda cfg, s, delays, seeds: seen.update(screen=(cfg, s, list(delays), list(seeds))) or
+                        {d: {"success": 0.5, "completion": 0.75} for d in delays})
+    args = build_parser().parse_args(["arm", "screen", "--task", "drift", "-n", "3"])
+    assert args.func(args) == 0
+    assert seen["closed"] == [(10000, DRIFT_CONFIG), (10001, DRIFT_CONFIG), (10002, DRIFT_CONFIG)]
+    assert seen["screen"] == (DRIFT_CONFIG, 5, [0, 1, 2, 3, 4, 5], [10000, 10001, 10002])
+    out = capsys.readouterr().out
+    assert "solves 2/3" in out and out.count("success 0.50") == 6
