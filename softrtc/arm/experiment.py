@@ -1,7 +1,7 @@
 """Controlled arm experiment: methods, shared fine-tunes, paired episodes, resumable runs ([AX-1]..[AX-6]).
 
 Every method row of a task differs from the others only in what is compared:
-all fine-tunes start from the one shipped base checkpoint ([A-21]) with the
+all fine-tunes start from the task's one shipped base checkpoint ([A-21], [AX-8]) with the
 same budget, the same seeds and therefore the same minibatch order and
 per-step draws ([T-8]); all episodes of a (task, delay) use the same
 environment seeds and sampler keys (paired episodes). Rows that train
