@@ -27,7 +27,8 @@ from .executor import EpisodeRecord, episode_metrics
 from .policy_config import METHOD_LABELS, STUDY_METHODS
 from .runtime import RuntimeConfig, jitter_summary, run_realtime_episode
 
-__all__ = ["run_study", "summarize", "format_table", "plot_traces", "DEFAULT_ADDED_LATENCY_S", "DEFAULT_SEED0"]
+__all__ = ["run_study", "summarize", "format_table", "read_results", "table_from_results", "plot_traces",
+           "DEFAULT_ADDED_LATENCY_S", "DEFAULT_SEED0"]
 
 # 55 ms on top of a few ms of compute: 60-80 ms per call, a realized delay of 3-4 ticks at 50 Hz.
 DEFAULT_ADDED_LATENCY_S = 0.055
@@ -97,6 +98,39 @@ def format_table(rows: dict) -> str:
     out = ["  ".join(c.ljust(w) for c, w in zip(row, widths)) for row in lines]
     out.insert(1, "  ".join("-" * w for w in widths))
     return "\n".join(out)
+
+
+_INT_FIELDS = ("completed", "hold_ticks")
+_REAL_FIELDS = ("completion", "throughput", "D1", "D2", "D3", "boundary", "latency_ms")
+
+
+def read_results(path) -> dict:
+    """``{method: [per-trial metrics]}`` from a study's ``results.csv`` ([A-25]), methods in first-seen order.
+
+    The inverse of what :func:`run_study` writes: ``success`` is ``True`` /
+    ``False``, ``fault`` is empty for none, reals may be ``nan``.
+    """
+    if not isinstance(path, (str, os.PathLike)) or not os.path.isfile(path):
+        raise ValueError(f"path must be an existing results.csv file, got {path!r}")
+    out: dict = {}
+    with open(path, newline="") as f:
+        for i, r in enumerate(csv.DictReader(f)):
+            try:
+                if r["success"] not in ("True", "False"):
+                    raise ValueError(f"success {r['success']!r}")
+                m = {"success": r["success"] == "True", "fault": r["fault"] or None,
+                     **{k: int(r[k]) for k in _INT_FIELDS}, **{k: float(r[k]) for k in _REAL_FIELDS}}
+            except (KeyError, ValueError, TypeError) as e:
+                raise ValueError(f"path {os.fspath(path)!r}: row {i + 1} is not a study result row ({e})") from None
+            out.setdefault(r["method"], []).append(m)
+    if not out:
+        raise ValueError(f"path {os.fspath(path)!r} holds no result rows")
+    return out
+
+
+def table_from_results(path) -> str:
+    """The study table ([A-25]) recomputed from a committed ``results.csv`` (the README's block)."""
+    return format_table({m: summarize(trials) for m, trials in read_results(path).items()})
 
 
 def plot_traces(records: dict, path) -> str:
@@ -226,3 +260,11 @@ def run_study(checkpoint_dir=None, trials: int = 10, methods=STUDY_METHODS,
             print("wrote " + ", ".join(paths.values()))
     return {"rows": rows, "per_trial": per_trial, "jitter": jitter, "delays": delay_hist, "table": table,
             "paths": paths}
+
+
+if __name__ == "__main__":  # python -m softrtc.arm.study results/arm/realtime/results.csv
+    import sys
+
+    if len(sys.argv) != 2:
+        sys.exit("usage: python -m softrtc.arm.study RESULTS_CSV")
+    print(table_from_results(sys.argv[1]))
