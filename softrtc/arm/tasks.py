@@ -14,7 +14,9 @@ as the delay grows. Neither setting is delay-sensitive for the base policy
 delay as at ``d = 0``). ``drift`` is: its boxes are trays that hop at random
 times ([A-27]), so a plan made before a hop releases the part where the tray
 was, and a part that misses a tray falls out of reach ([AX-8]); it has its own
-demonstrations and base (``checkpoints/drift/base.npz``).
+demonstrations and base (``checkpoints/drift/base.npz``). ``drift_overlap4``
+runs that world and base with ``s = 6`` (overlap 4, delays ``0 .. 4``), where
+zero padding and ``clip`` differ; it is less delay-sensitive ([AX-8]).
 """
 
 from __future__ import annotations
@@ -71,6 +73,9 @@ TASKS = {
     "easy": ArmTask("easy", 5, ArmConfig(), "the study's setting: s = 5, delays 0..5"),
     "overlap4": ArmTask("overlap4", 6, ArmConfig(), "s = 6, overlap 4, delays 0..4 (the paper's overlap geometry)"),
     "drift": ArmTask("drift", 5, DRIFT_CONFIG, "hopping trays: s = 5, delays 0..5, its own base", "drift"),
+    "drift_overlap4": ArmTask("drift_overlap4", 6, DRIFT_CONFIG,
+                              "hopping trays with s = 6, overlap 4, delays 0..4: drift's base, overlap4's geometry",
+                              "drift"),
 }
 
 

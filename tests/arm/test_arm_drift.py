@@ -142,7 +142,8 @@ def test_drift_expert_solves_and_chunked_expert_runs():
 
 def test_drift_task_and_its_base():
     """AX-8, A-21: drift runs s = 5 (delays 0..5) in the moving-tray world and has its own shipped base, trained
-    as the base in that world (its feature statistics differ from the default world's base)."""
+    as the base in that world (its feature statistics differ from the default world's base); drift_overlap4 runs
+    that world and base with s = 6."""
     from softrtc.arm.checkpoints import default_checkpoint_dir, load_arm_checkpoint, load_policies
 
     task = get_task("drift")
@@ -156,6 +157,15 @@ def test_drift_task_and_its_base():
     shipped = load_arm_checkpoint(default_checkpoint_dir() / "base.npz")
     assert not np.allclose(pol.normalizer.obs_mean, shipped.normalizer.obs_mean)
     assert get_task("easy").base_checkpoint() == default_checkpoint_dir() / "base.npz"
+    # drift_overlap4: the same world and base with overlap4's geometry (s = 6, delays 0..4), where the paper's
+    # window runs past the overlap and zero padding trains and samples differently from clip.
+    from softrtc.arm.experiment import rows_for, train_key
+
+    o4 = get_task("drift_overlap4")
+    assert (o4.execute_horizon, o4.max_delay, o4.env_config, o4.base_checkpoint()) == (6, 4, DRIFT_CONFIG, path)
+    rows = {r.name: r for r in rows_for(o4)}
+    assert train_key(rows["soft2_zeros"], o4) != train_key(rows["soft2_clip"], o4)
+    assert train_key(rows["soft2_zeros"], task) == train_key(rows["soft2_clip"], task)
 
 
 def test_expert_and_features_skip_a_part_out_of_reach():
@@ -212,8 +222,10 @@ def test_experiment_on_drift_starts_from_its_base(tmp_path):
     assert manifest["base_sha256_16"] == digest(get_task("drift").base_checkpoint())
     assert manifest["base_sha256_16"] != digest(default_checkpoint_dir() / "base.npz")
     (cell,) = (tmp_path / "res" / "drift" / "episodes").glob("*_d5.csv")
-    (ep,) = read_episodes(cell)
-    assert (ep["delay"], ep["env_seed"], ep["steps"]) == (5, 10000, 60)
+    # The quick budget: 2 paired episodes of 60 ticks (too short to sort four parts).
+    eps = read_episodes(cell)
+    assert [(e["delay"], e["env_seed"], e["steps"], e["success"]) for e in eps] == [(5, 10000, 60, 0),
+                                                                                    (5, 10001, 60, 0)]
 
 
 def test_screen_command_runs_the_tasks_screen(monkeypatch, capsys):
