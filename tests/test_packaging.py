@@ -56,7 +56,7 @@ def test_wheel_holds_the_three_packages_and_their_data(dists):
     vectors = sorted(p.name for p in (ROOT / "conformance" / "vectors").glob("*.json"))
     for v in vectors:
         assert f"softrtc/conformance/vectors/{v}" in names
-    for ck in ("base", "train_hard", "train_soft"):
+    for ck in ("base", "train_hard", "train_soft", "drift/base"):
         assert f"softrtc/arm/checkpoints/{ck}.npz" in names
     for module in ("reference/weights.py", "conformance/runner.py", "reference_cli.py", "cli.py"):
         assert f"softrtc/{module}" in names
