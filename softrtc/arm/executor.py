@@ -25,6 +25,17 @@ from softrtc.reference._validate import check_int
 from .env import ACTION_DIM, ArmConfig, ArmSortEnv, NUM_OBJECTS
 from .geometry import _check_env_config
 
+# One dispatch per request instead of one per primitive (same keys as jax.random.fold_in).
+_fold_in = jax.jit(jax.random.fold_in)
+
+
+def _shift_prior(prev: np.ndarray, s: int) -> np.ndarray:
+    """[X-3] on the host: Y[j] = prev[j + s] for j < H - s, else 0, rounded through float32 like the JAX
+    twin ``softrtc.jax.executor.shift_prior`` (the policies' inputs are float32)."""
+    y = np.zeros_like(prev, dtype=np.float32)
+    y[: prev.shape[0] - s] = prev[s:]
+    return y.astype(np.float64)
+
 __all__ = ["EpisodeRecord", "run_simulated_episode", "episode_metrics", "JOINT_DIMS"]
 
 # [A-24] smoothness metrics use the commanded joint targets only.
@@ -124,11 +135,11 @@ def run_simulated_episode(policy, env_seed: int, delays, key, *, max_steps: int 
     while not env.done and env.t < limit:
         d = 0 if c == 0 else dfn(c)
         req.append(env.t)
-        sub = jax.random.fold_in(key, c)
+        sub = _fold_in(key, c)
         if prev is None:
             new = np.asarray(policy.generate(obs, None, 0, sub), np.float64)
         else:
-            prior = np.asarray(jexec.shift_prior(prev, s), np.float64)
+            prior = _shift_prior(prev, s)
             new = np.asarray(policy.generate(obs, prior, d, sub), np.float64)
         # [X-4]: prev[s .. s + d - 1], then new[d .. s - 1] (d = 0 for the first chunk, [X-2]).
         from_prev, token = jexec.segment_sources(H, s, d)

@@ -113,7 +113,7 @@ class ArmPolicy:
                 raise ValueError(f"prior must be a finite array of shape [{self.H}, {ACTION_DIM}], got {list(p.shape)}")
             y = (p.astype(np.float32) - self._nm[2]) / self._nm[3]
             z = self.chunks.next(o, y[None], d, key)
-        z = np.asarray(z[0]) * self._nm[3] + self._nm[2]
+        z = np.asarray(z)[0] * self._nm[3] + self._nm[2]
         return np.clip(z.astype(np.float64), self.low, self.high)
 
     def warmup(self) -> None:

@@ -118,9 +118,10 @@ def segment_sources(H: int, s: int, d) -> tuple[np.ndarray, np.ndarray]:
     action at a time.
     """
     d = check_delay(H, s, d)
-    s = int(s)
-    from_prev, token = _sources(s, np.int32(d))
-    return np.asarray(from_prev), np.asarray(token)
+    # The host twin of _sources: NumPy, because an eager JAX call per request costs more than the rule.
+    i = np.arange(int(s), dtype=np.int32)
+    from_prev = i < d
+    return from_prev, np.where(from_prev, int(s) + i, i).astype(np.int32)
 
 
 def execute_chunks(chunks, delays, s: int) -> dict:

@@ -518,3 +518,19 @@ def test_arm_train_command_never_defaults_to_the_shipped_checkpoints(tmp_path, m
     assert args.func(args) == 0
     assert seen["env_config"] == DRIFT_CONFIG and seen["fine_tune"] is False
     assert build_parser().parse_args(["arm", "train", "--out", str(tmp_path / "x")]).out == str(tmp_path / "x")
+
+
+def test_host_shift_prior_equals_the_jax_twin_bitwise():
+    """[X-3] The executor's host shift (NumPy, rounded through float32) equals softrtc.jax.executor.shift_prior
+    on float64 chunks, for every s, and zero-fills the last s tokens."""
+    from softrtc.arm.executor import _shift_prior
+    from softrtc.jax import executor as jexec
+
+    rng = np.random.default_rng(3)
+    for s in range(1, 11):
+        prev = rng.normal(size=(10, 4)) * 3.0
+        got = _shift_prior(prev, s)
+        want = np.asarray(jexec.shift_prior(prev, s), np.float64)
+        assert got.dtype == np.float64 and np.array_equal(got, want)
+        assert np.all(got[10 - s:] == 0.0)
+        assert np.array_equal(got[: 10 - s], prev[s:].astype(np.float32).astype(np.float64))
