@@ -354,7 +354,7 @@ def _finetune(key: str, row: Row, task: ArmTask, seed: int, budget: Budget, data
 # --------------------------------------------------------------------------- driver
 
 
-def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="results/arm", work="arm_experiment_work",
+def run_experiment(task_name: str = "drift", budget_name: str = "full", out="results/arm", work="arm_experiment_work",
                    rows=None, delays=None, seeds=None, tiers=("main", "sweep"), workers: int = 2,
                    episodes: int | None = None, seed0: int = 10_000, key_seed: int = 0, log=print) -> dict:
     """Run (or resume) the experiment of ``task_name`` under a budget; returns a summary of what ran.
@@ -426,10 +426,8 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
         prior_path.write_text(json.dumps(pe, indent=1) + "\n")
     sigma = json.loads(prior_path.read_text())["sigma"]
 
-    # Fine-tunes, one per (train key, seed), shared by every row with that key.
-    base = None
-    data = None
-    ckpt_of = {}
+    # Cells first: a fine-tune runs only when a cell that needs its checkpoint is incomplete, so a
+    # complete results folder (e.g. a fresh clone's committed one) costs no fine-tuning.
     jobs = []
     for r in selected:
         key = train_key(r, task)
@@ -438,37 +436,47 @@ def run_experiment(task_name: str = "overlap4", budget_name: str = "full", out="
         if seeds is not None:
             seed_list = [s for s in seed_list if s in seeds or key is None]
         for sd in seed_list:
-            if key is None:
-                ckpt = base_path
-            else:
-                ckpt = work_dir / f"{key}_seed{sd}.npz"
-                tag = f"{key}_seed{sd}"
-                if not ckpt.is_file():
-                    if base is None:
-                        base = load_arm_checkpoint(base_path)
-                        data = _demos(Path(work), budget, task)
-                    log(f"[{task.name}] fine-tune {tag} ({r.name}, {budget.finetune_steps} steps)")
-                    # One file per fine-tune: runs in parts may fine-tune in parallel processes.
-                    rec = _finetune(key, r, task, sd, budget, data, base, sigma, ckpt)
-                    (out_dir / "finetunes").mkdir(exist_ok=True)
-                    (out_dir / "finetunes" / f"{tag}.json").write_text(json.dumps(rec, indent=1, sort_keys=True)
-                                                                       + "\n")
-            ckpt_of[(r.name, sd)] = ckpt
+            ckpt = base_path if key is None else work_dir / f"{key}_seed{sd}.npz"
             n_eps = budget.main_episodes if r.tier == "main" else budget.sweep_episodes
             n_eps = n_eps if episodes is None else min(n_eps, episodes)
             for d in budget.delays(task, r.tier):
                 if delays is not None and d not in delays:
                     continue
-                ek = eval_key(r, task)
-                path = ep_dir / f"{ek}_s{sd}_d{d}.csv"
-                jobs.append((r, sd, d, n_eps, path, ckpt))
+                path = ep_dir / f"{eval_key(r, task)}_s{sd}_d{d}.csv"
+                jobs.append((r, sd, d, n_eps, path, ckpt, key))
     # Rows that share an eval key share their episodes: run each file once.
     todo, seen = [], set()
-    for (r, sd, d, n, path, ckpt) in jobs:
+    for (r, sd, d, n, path, ckpt, key) in jobs:
         if path in seen or (path.is_file() and len(read_episodes(path)) >= n):
             continue
         seen.add(path)
-        todo.append((str(ckpt), task.name, r, sd, d, n, seed0, key_seed, budget.max_steps, str(path)))
+        todo.append((r, sd, key, (str(ckpt), task.name, r, sd, d, n, seed0, key_seed, budget.max_steps, str(path))))
+
+    # Fine-tunes, one per (train key, seed), shared by every row with that key.
+    base = None
+    data = None
+    for (r, sd, key, args) in todo:
+        ckpt = Path(args[0])
+        if key is None or ckpt.is_file():
+            continue
+        if base is None:
+            base = load_arm_checkpoint(base_path)
+            data = _demos(Path(work), budget, task)
+        tag = f"{key}_seed{sd}"
+        log(f"[{task.name}] fine-tune {tag} ({r.name}, {budget.finetune_steps} steps)")
+        # One file per fine-tune: runs in parts may fine-tune in parallel processes.
+        rec = _finetune(key, r, task, sd, budget, data, base, sigma, ckpt)
+        rec_path = out_dir / "finetunes" / f"{tag}.json"
+        if rec_path.is_file() and json.loads(rec_path.read_text())["sha256_16"] != rec["sha256_16"]:
+            # The folder's episodes of this fine-tune came from another checkpoint (another machine's
+            # floating point, or changed code): extending them would mix two policies in one cell.
+            ckpt.unlink()
+            raise ValueError(f"fine-tune {tag} gave checkpoint {rec['sha256_16']}, but {rec_path} records "
+                             f"{json.loads(rec_path.read_text())['sha256_16']}: its episodes in {out_dir} came from "
+                             "another checkpoint; use another --out")
+        rec_path.parent.mkdir(exist_ok=True)
+        rec_path.write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
+    todo = [args for (_, _, _, args) in todo]
     log(f"[{task.name}] {len(jobs)} cells, {len(todo)} to run with {workers} worker(s)")
     t0 = time.perf_counter()
     done = 0

@@ -22,7 +22,8 @@ def add_experiment_parsers(sub) -> None:
 
     ex = sub.add_parser("experiment", help="controlled arm experiment: paired episodes, shared fine-tunes, "
                                            "resumable ([AX-1]..[AX-5])")
-    ex.add_argument("--task", choices=tuple(TASKS), default="overlap4", help="task setting (default overlap4)")
+    ex.add_argument("--task", choices=tuple(TASKS), default="drift",
+                    help="task setting (default drift, the delay-sensitive one, [AX-8])")
     ex.add_argument("--quick", action="store_true", help="tiny budget: the whole pipeline in a few minutes")
     ex.add_argument("--out", type=output_dir(), default="results/arm", help="results folder (default results/arm)")
     ex.add_argument("--work", type=output_dir(), default="arm_experiment_work",
@@ -50,6 +51,8 @@ def add_experiment_parsers(sub) -> None:
     rp = sub.add_parser("report", help="REPORT.md, summary.json and plots from the experiment's result files ([AX-6])")
     rp.add_argument("--results", default="results/arm", help="results folder (default results/arm)")
     rp.add_argument("--readme", default=None, help="also regenerate the arm table of this README")
+    rp.add_argument("--readme-task", choices=tuple(TASKS), default="drift",
+                    help="the task whose main table goes into the README (default drift)")
     rp.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     rp.set_defaults(func=_report)
 
@@ -87,5 +90,5 @@ def _screen(args) -> int:
 def _report(args) -> int:
     from .report import write_report
 
-    print(write_report(args.results, readme=args.readme, plots=not args.no_plots))
+    print(write_report(args.results, readme=args.readme, readme_task=args.readme_task, plots=not args.no_plots))
     return 0
