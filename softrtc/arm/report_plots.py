@@ -39,14 +39,15 @@ def _save(plt, fig, path: Path) -> Path:
     return path
 
 
-def plot_all(res, out_dir) -> list:
-    """PNG plots: frontier, sweeps, success per delay, window weights ([AX-6])."""
+def plot_all(res, out_dir, summary: dict | None = None) -> list:
+    """PNG plots: frontier, sweeps, success per delay, window weights ([AX-6]); ``summary`` is
+    ``summarize(res)`` when already computed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    summary = summarize(res)
+    summary = summarize(res) if summary is None else summary
     m = res["manifest"]
     out_dir = Path(out_dir)
     paths = []
