@@ -19,6 +19,7 @@ import jax
 import numpy as np
 
 from softrtc.jax import executor as jexec
+from softrtc.reference import executor as rexec
 from softrtc.reference import metrics as rmetrics
 from softrtc.reference._validate import check_int
 
@@ -30,11 +31,9 @@ _fold_in = jax.jit(jax.random.fold_in)
 
 
 def _shift_prior(prev: np.ndarray, s: int) -> np.ndarray:
-    """[X-3] on the host: Y[j] = prev[j + s] for j < H - s, else 0, rounded through float32 like the JAX
-    twin ``softrtc.jax.executor.shift_prior`` (the policies' inputs are float32)."""
-    y = np.zeros_like(prev, dtype=np.float32)
-    y[: prev.shape[0] - s] = prev[s:]
-    return y.astype(np.float64)
+    """[X-3] on the host (the reference's shift), rounded through float32 like the JAX twin
+    ``softrtc.jax.executor.shift_prior`` (the policies' inputs are float32)."""
+    return rexec.shift_prior(prev, s).astype(np.float32).astype(np.float64)
 
 __all__ = ["EpisodeRecord", "run_simulated_episode", "episode_metrics", "JOINT_DIMS"]
 

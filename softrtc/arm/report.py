@@ -226,6 +226,8 @@ def write_report(results_root="results/arm", readme=None, readme_task=README_TAS
     tasks = sorted(p.parent.name for p in root.glob("*/manifest.json"))
     if not tasks:
         raise ValueError(f"results_root must hold task folders with manifest.json, got {str(root)!r}")
+    if readme is not None and readme_task not in tasks:
+        raise ValueError(f"readme_task must be one of the result tasks {tasks}, got {readme_task!r}")
     res = {t: load_results(root / t) for t in tasks}
     summaries = {t: summarize(r) for t, r in res.items()}
     text = render_report(res, summaries)
@@ -236,8 +238,6 @@ def write_report(results_root="results/arm", readme=None, readme_task=README_TAS
                                                + "\n")
         if plots:
             plot_all(r, root / t, summaries[t])
-    if readme is not None and readme_task not in res:
-        raise ValueError(f"readme_task must be one of the result tasks {tasks}, got {readme_task!r}")
     if readme is not None:
         p = Path(readme)
         txt = p.read_text()

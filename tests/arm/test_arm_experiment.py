@@ -167,12 +167,11 @@ def test_quick_experiment_pipeline(tmp_path):
 
 def test_committed_report_matches_results():
     """AX-6: the committed REPORT.md and the README's arm table are what `softrtc arm report` makes of the results."""
-    from softrtc.arm.report import README_BEGIN, README_END, README_TASK, load_results, render_readme_table, render_report
+    from softrtc.arm.report import (README_BEGIN, README_END, README_TASK, load_results, render_readme_table,
+                                    render_report, summarize)
 
     tasks = sorted(p.parent.name for p in RESULTS.glob("*/manifest.json"))
     assert tasks, "results/arm holds no experiment results"
-    from softrtc.arm.report import summarize
-
     res = {t: load_results(RESULTS / t) for t in tasks}
     sums = {t: summarize(r) for t, r in res.items()}
     assert (RESULTS / "REPORT.md").read_text() == render_report(res, sums)
@@ -187,3 +186,26 @@ def test_committed_report_matches_results():
                 for st in scope.values():
                     if math.isfinite(st["lo"]):
                         assert st["lo"] <= st["mean"] + 1e-12 and st["mean"] <= st["hi"] + 1e-12
+
+
+def test_report_says_what_a_larger_budget_would_add_and_checks_the_readme_task(tmp_path):
+    """AX-6: a main row whose paired high-delay success interval against Train Hard includes 0 is listed with the
+    factor of episodes x seeds that would exclude 0 were the difference to hold ((half-width / |diff|)^2, here
+    (0.10 / 0.05)^2 = 4); rows whose interval excludes 0 are not; the README's task must be among the results."""
+    from softrtc.arm.report import _larger_budget, write_report
+
+    m = {"rows": {"train_hard": {"tier": "main"}, "a": {"tier": "main"}, "b": {"tier": "main"},
+                  "c": {"tier": "sweep"}},
+         "order": ["train_hard", "a", "b", "c"]}
+    summary = {"a": {"vs_hard": {"high": {"success": {"diff": 0.05, "lo": -0.05, "hi": 0.15}}}},
+               "b": {"vs_hard": {"high": {"success": {"diff": -0.2, "lo": -0.3, "hi": -0.1}}}},
+               "c": {"vs_hard": {"high": {"success": {"diff": 0.0, "lo": -0.1, "hi": 0.1}}}}}
+    (line, _) = _larger_budget(summary, m)
+    assert "`a` +0.05 [-0.05, 0.15] (about 4x the episodes x seeds" in line
+    assert "`b`" not in line and "`c`" not in line
+    summary["a"]["vs_hard"]["high"]["success"] = {"diff": 0.2, "lo": 0.1, "hi": 0.3}
+    assert _larger_budget(summary, m)[0].startswith("Every main row's high-delay success difference")
+    (tmp_path / "easy").mkdir()
+    (tmp_path / "easy" / "manifest.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"readme_task must be one of the result tasks \['easy'\], got 'drift'"):
+        write_report(tmp_path, readme=tmp_path / "README.md", readme_task="drift")
