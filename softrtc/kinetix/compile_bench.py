@@ -5,7 +5,8 @@ Measured side by side in one process, in a fresh temporary cache folder (so
 [K-13] and for the rollout of every sampler family ([KE-3]), the cold compile
 (trace + compile, empty cache) and the warm one (the same program again after
 the process's in-memory caches are cleared, as a new process would see it);
-then the fastest of ``repeats`` runs of each. Ratios printed by
+then ``repeats`` rounds that run every program once in turn (bare env, then
+each family), and the fastest run of each. Ratios printed by
 ``softrtc kinetix bench``: warm / cold per program (target <= 0.10), rollout
 cold / bare cold (target <= 1.5) and rollout / bare env steps per second
 (target >= 0.75).
@@ -21,22 +22,25 @@ import time
 
 import flax.nnx as nnx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from softrtc._machine import cpu_model
+from softrtc.jax import executor as jexec
+from softrtc.jax.fast_chunks import FastChunks
 from softrtc.jax.policy import FlowPolicy, PolicyConfig
 from softrtc.reference._validate import check_int
 
 from . import cache
 from . import env as kenv
 from .limits import NUM_ENVS_MAX, REPEATS_MAX
-from .methods import method_family, parse_method
+from .methods import method_family, parse_method, rollout_weight_table
 from .protocol import EPISODE_STEPS, EXECUTE_HORIZON, NUM_FLOW_STEPS
 from .rollout import Rollout
 
-__all__ = ["FAMILY_METHODS", "bench_compile", "add_ratios", "format_compile_bench"]
+__all__ = ["FAMILY_METHODS", "bench_compile", "add_ratios", "add_policy_bounds", "format_compile_bench"]
 
 # The method each family is measured with ([KE-3]); weights are arguments, so any method of a family compiles alike.
 FAMILY_METHODS = {"rtc": "naive", "guided": "inference_soft"}
@@ -76,12 +80,13 @@ def bench_compile(level: str = "grasp_easy", num_envs: int = 64, seed: int = 0,
     prev_dir, prev_configured = cache._state["dir"], cache._state["configured"]
     tmp = tempfile.mkdtemp(prefix="softrtc-bench-cache-")
     rows: dict = {}
-    bar = tqdm(total=2 * (1 + len(families)) + (1 + len(families)), desc="bench", disable=not progress,
+    bar = tqdm(total=(2 + repeats) * (1 + len(families)) + (1 + repeats) * len(families), desc="bench", disable=not progress,
                file=sys.stderr)
     try:
         cache.enable_compile_cache(tmp)
         bare_fn = kenv.make_random_rollout(task, num_envs, steps)
         bare_cfg = ("bare_env", num_envs, steps, task.action_noise_std, task.env_params, task.static_env_params)
+        runs = {}
         entry = {}
         for phase in ("cold", "warm"):
             bar.set_postfix_str(f"bare env: {phase} compile")
@@ -89,10 +94,8 @@ def bench_compile(level: str = "grasp_easy", num_envs: int = 64, seed: int = 0,
             prog = cache.compile_program("bare_env", bare_fn, (key,), (rep,), rep, config=bare_cfg)
             entry[phase + "_s"], entry[phase + "_source"] = prog.seconds, prog.source
             bar.update(1)
-        bar.set_postfix_str("bare env: run")
-        entry["run_s"] = _best(lambda: jax.block_until_ready(prog(key)), repeats)
-        bar.update(1)
         rows["bare"] = entry
+        runs["bare"] = lambda prog=prog: jax.block_until_ready(prog(key))
         for fam in families:
             spec = specs[fam]
             entry = {"method": spec.label}
@@ -103,10 +106,29 @@ def bench_compile(level: str = "grasp_easy", num_envs: int = 64, seed: int = 0,
                 entry[phase + "_s"] = ro.compile(policy, spec, level, keys, delays)
                 entry[phase + "_source"] = ro.compile_source
                 bar.update(1)
-            bar.set_postfix_str(f"rollout {fam}: run")
-            entry["run_s"] = _best(lambda: ro(policy, spec, level, keys, delays), repeats)
-            bar.update(1)
             rows[fam] = entry
+            runs[fam] = lambda ro=ro, spec=spec: ro(policy, spec, level, keys, delays)
+        # What the policy alone adds: each family's C chunk requests without the env ([KC-6]).
+        obs0, _ = jax.vmap(task.reset)(keys)
+        for fam in families:
+            bar.set_postfix_str(f"policy alone {fam}: compile")
+            runs["policy_" + fam] = _chunks_alone(policy, fam, specs[fam], s, T, C, obs0, keys, delays)
+            bar.update(1)
+        # The runs are interleaved (bare, each family, bare, ...), so every program's best run is taken
+        # under the same machine conditions as the others'.
+        times = {name: [] for name in runs}
+        for r in range(repeats):
+            for name, run in runs.items():
+                bar.set_postfix_str(f"run {r + 1}/{repeats}: {name}")
+                times[name].append(_timed(run))
+                bar.update(1)
+        policy_alone = {}
+        for name, ts in times.items():
+            if name.startswith("policy_"):
+                policy_alone[name[len("policy_"):]] = {"calls": C, "run_s": min(ts), "run_times_s": ts}
+            else:
+                rows[name]["run_s"] = min(ts)
+                rows[name]["run_times_s"] = ts
     finally:
         bar.close()
         cache.clear_memory()
@@ -118,10 +140,37 @@ def bench_compile(level: str = "grasp_easy", num_envs: int = 64, seed: int = 0,
         shutil.rmtree(tmp, ignore_errors=True)
     env_steps = num_envs * steps
     rows = add_ratios(rows, env_steps)
+    policy_alone = add_policy_bounds(policy_alone, rows["bare"]["run_s"])
     return {"level": level, "num_envs": num_envs, "env_steps": env_steps, "repeats": repeats, "seed": seed,
             "policy_params": int(sum(np.size(x) for x in jax.tree.leaves(nnx.state(policy)))),
             "device": str(jax.devices()[0]), "num_devices": len(jax.devices()), "cpu": cpu_model(),
-            "programs": rows}
+            "programs": rows, "policy_alone": policy_alone}
+
+
+def _chunks_alone(policy, family: str, spec, s: int, T: int, C: int, obs, keys, delays):
+    """The rollout's policy calls alone ([KC-6]): request 0 with the naive sampler, then ``C - 1`` requests
+    of ``family``'s sampler at a fixed observation, each from the previous chunk's shifted prior, with the
+    rollout's weight table, batch and delays. No env step runs, so its time is what the policy adds."""
+    graphdef, params = nnx.split(policy)
+    table = jnp.asarray(rollout_weight_table(spec, policy.action_chunk_size, s))
+    sampler = "train_hard" if family == "rtc" else "inference_hard"
+    d = jnp.asarray(delays, jnp.int32)
+
+    @jax.jit
+    def run(params, obs, keys):
+        chunks = FastChunks(nnx.merge(graphdef, params), sampler, s, T, weights=table, stored_transposes=False)
+
+        def request(prev, c):
+            noise = jax.vmap(lambda k: jax.random.fold_in(k, c))(keys)
+            new = chunks.next(obs, jexec.shift_prior(prev, s), d, noise)
+            return new, None
+
+        first = chunks.first(obs, keys)
+        last, _ = jax.lax.scan(request, first, jnp.arange(1, C, dtype=jnp.int32))
+        return last
+
+    jax.block_until_ready(run(params, obs, keys))  # compile before the timed rounds
+    return lambda: jax.block_until_ready(run(params, obs, keys))
 
 
 def add_ratios(programs: dict, env_steps: int) -> dict:
@@ -144,13 +193,24 @@ def add_ratios(programs: dict, env_steps: int) -> dict:
     return out
 
 
-def _best(run, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+def add_policy_bounds(policy_alone: dict, bare_run_s: float) -> dict:
+    """Each family's entry of ``policy_alone`` with ``bound_over_bare = bare / (bare + policy alone)``
+    ([KC-6]): the highest throughput ratio a rollout of this policy can reach on this machine, where
+    the harness itself would cost nothing beyond the env's steps and the policy's calls."""
+    if not isinstance(bare_run_s, float) or not bare_run_s > 0:
+        raise ValueError(f"bare_run_s must be a positive float, got {bare_run_s!r}")
+    out = {}
+    for fam, entry in policy_alone.items():
+        if not isinstance(entry.get("run_s"), float) or not entry["run_s"] > 0:
+            raise ValueError(f"policy_alone entries must have a positive float 'run_s', got {entry.get('run_s')!r}")
+        out[fam] = dict(entry, bound_over_bare=bare_run_s / (bare_run_s + entry["run_s"]))
+    return out
+
+
+def _timed(run) -> float:
+    t0 = time.perf_counter()
+    run()
+    return time.perf_counter() - t0
 
 
 
@@ -168,6 +228,10 @@ def format_compile_bench(res: dict) -> str:
                                         f"throughput {e['throughput_over_bare']:.3f}x")
         lines.append(f"{label} | {e['cold_s']:.1f} | {e['warm_s']:.2f} ({e['warm_source']}) | "
                      f"{e['warm_over_cold']:.3f} | {e['run_s']:.1f} | {e['steps_per_s']:.0f} | {vs}")
+    for fam, e in res.get("policy_alone", {}).items():
+        lines.append(f"policy alone, {fam}: {e['calls']} chunk requests x {res['num_envs']} envs, no env step | "
+                     f"run {e['run_s']:.1f} s | bare env + policy alone bound the throughput at "
+                     f"{e['bound_over_bare']:.3f}x")
     lines.append("targets: warm/cold <= 0.10; rollout cold compile <= 1.5x the bare env's; "
                  "rollout throughput >= 0.75x the bare env's")
     return "\n".join(lines) + "\n"

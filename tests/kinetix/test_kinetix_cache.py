@@ -183,9 +183,10 @@ def test_two_processes_share_one_cache_folder(tmp_path):
 
 
 def test_bench_ratios_and_table_by_hand():
-    """KC-6: warm/cold, rollout cold compile / bare env's, and throughput / bare env's, from hand values;
-    the table prints them with the targets; a family without the bare env is an error."""
-    from softrtc.kinetix.compile_bench import add_ratios, format_compile_bench
+    """KC-6: warm/cold, rollout cold compile / bare env's, throughput / bare env's and the policy-alone bound
+    bare / (bare + policy), from hand values; the table prints them with the targets; a family without the
+    bare env is an error."""
+    from softrtc.kinetix.compile_bench import add_policy_bounds, add_ratios, format_compile_bench
 
     progs = {"bare": {"cold_s": 20.0, "warm_s": 1.0, "run_s": 16.0, "warm_source": "disk"},
              "rtc": {"cold_s": 25.0, "warm_s": 2.0, "run_s": 20.0, "warm_source": "disk", "method": "naive"}}
@@ -197,6 +198,16 @@ def test_bench_ratios_and_table_by_hand():
                                  "num_devices": 1, "device": "cpu", "cpu": "x", "programs": out})
     assert "rollout rtc | 25.0 | 2.00 (disk) | 0.080 | 20.0 | 819 | compile 1.25x, throughput 0.800x" in text
     assert "warm/cold <= 0.10" in text
+    # The policy-alone line: bare 16 s + chunks 4 s bound the throughput at 16 / 20 = 0.8.
+    alone = add_policy_bounds({"rtc": {"calls": 64, "run_s": 4.0}}, 16.0)
+    assert alone["rtc"]["bound_over_bare"] == 0.8
+    with pytest.raises(ValueError, match="^policy_alone entries must have a positive float 'run_s'"):
+        add_policy_bounds({"rtc": {"calls": 64, "run_s": 0.0}}, 16.0)
+    text = format_compile_bench({"level": "grasp_easy", "num_envs": 64, "env_steps": 16384, "policy_params": 10,
+                                 "num_devices": 1, "device": "cpu", "cpu": "x", "programs": out,
+                                 "policy_alone": alone})
+    assert ("policy alone, rtc: 64 chunk requests x 64 envs, no env step | run 4.0 s | bare env + policy alone "
+            "bound the throughput at 0.800x") in text
     with pytest.raises(ValueError, match="^programs must hold 'bare'"):
         add_ratios({"rtc": progs["rtc"]}, 10)
     with pytest.raises(ValueError, match="^programs entries must have a positive float 'run_s'"):
