@@ -244,9 +244,9 @@ def test_policy_shared_and_per_token_time_and_conditioning(architecture):
     obs, x, t = torch.randn(3, 5, generator=g), torch.randn(3, 8, 3, generator=g), torch.rand(3, generator=g)
     with torch.no_grad():
         shared = model(obs, x, t)
-        # token input: bitwise; adaln: the shared time's modulation [B, 1, F] broadcasts, a product of other
-        # shape may round differently
-        tol = 0 if architecture == "token_input" else 1e-6
+        # The shared time's conditioning [B, 1, F] broadcasts over the tokens: its products have other
+        # shapes than the per-token ones, and a CPU's kernels, chosen by shape, may round them differently.
+        tol = 1e-5
         torch.testing.assert_close(model(obs, x, t[:, None].expand(3, 8)), shared, rtol=tol, atol=tol)
         tt = torch.rand(3, 8, generator=g)
         torch.testing.assert_close(model(obs, x, tt),
