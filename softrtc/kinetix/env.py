@@ -51,7 +51,7 @@ from .limits import BATCH_MAX, NUM_ENVS_MAX, NUM_STEPS_MAX, REPEATS_MAX
 __all__ = [
     "LEVEL_NAMES", "LARGE_ENV_PARAMS", "FRAME_SKIP", "NUM_MOTOR_BINDINGS", "NUM_THRUSTER_BINDINGS",
     "MAX_TIMESTEPS", "ACTION_NOISE_STD", "OBS_DIM", "ACTION_DIM", "project_root", "default_levels_dir",
-    "resolve_levels_dir", "benchmark_static_env_params", "load_level", "KinetixTask", "make_env",
+    "resolve_levels_dir", "benchmark_static_env_params", "load_level", "KinetixTask", "make_env", "strong_types",
     "random_actions", "make_random_rollout", "bench_bare_env",
 ]
 
@@ -234,6 +234,16 @@ class KinetixTask:
         _check_action("action", action, (n, self.action_dim))
         self._check_state(state, n)
         return jax.vmap(self.step)(jax.random.split(key, n), state, action)
+
+
+def strong_types(tree):
+    """``tree`` with every array leaf strongly typed (same dtypes and values; typed PRNG keys kept).
+
+    Kinetix keeps its step counter weakly typed, and a carried state that comes back from a ``scan``
+    or from a resume file is strongly typed; jit compiles anew when a weak type changes, so a loop that
+    feeds a state back into the same program (PPO iterations, data blocks) makes it strong first.
+    """
+    return jax.tree.map(lambda x: x if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else x.astype(x.dtype), tree)
 
 
 def make_env(

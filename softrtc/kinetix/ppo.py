@@ -230,9 +230,25 @@ def make_ppo(task: kenv.KinetixTask, config: PPOConfig):
         return c, metrics
 
     def update(state):
-        return one_update(state, None)
+        state, metrics = one_update(state, None)
+        return kenv.strong_types(state), metrics
 
-    return jax.jit(init), jax.jit(update, donate_argnums=0)
+    # A fresh state and one read back from a resume file are then the same program input ([KP-7]).
+    return jax.jit(lambda key: kenv.strong_types(init(key))), jax.jit(update, donate_argnums=0)
+
+
+
+# make_ppo's programs per level and configuration, built once per process: a run resumed or repeated in
+# the same process (a script training in stages, the tests) neither retraces nor recompiles.
+_PROGRAMS: dict = {}
+
+
+def _ppo_programs(task: kenv.KinetixTask, config: PPOConfig):
+    key = (task.level_name, str(task.levels_dir), task.action_noise_std, task.env_params, task.static_env_params,
+           config)
+    if key not in _PROGRAMS:
+        _PROGRAMS[key] = make_ppo(task, config)
+    return _PROGRAMS[key]
 
 
 def expert_paths(run_dir: str | os.PathLike, seed: int, level: str, update: int | None = None) -> dict:
@@ -274,7 +290,7 @@ def train_expert(level: str, run_dir: str | os.PathLike, *, updates: int, seed: 
     check_out_dir("run_dir", run_dir)
     paths = expert_paths(run_dir, seed, level)
     task = kenv.make_env(level, levels_dir)
-    init, update = make_ppo(task, config)
+    init, update = _ppo_programs(task, config)
     state = init(jax.random.fold_in(jax.random.key(seed), kenv.LEVEL_NAMES.index(level)))
     meta = {"level": level, "seed": seed, "config": config.to_dict(), "format": 1}
     rows: list[dict] = []

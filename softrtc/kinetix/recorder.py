@@ -143,7 +143,9 @@ def generate_data(run_dir: str | os.PathLike, level: str, *, out_dir: str | os.P
         return new, rec
 
     run_block = jax.jit(lambda c: jax.lax.scan(step, c, None, length=batch_size), donate_argnums=0)
-    carry = jax.jit(init)(jax.random.fold_in(jax.random.key(seed), kenv.LEVEL_NAMES.index(level)))
+    # Strong types: the carry fed back block after block is then one program input (one compile).
+    carry = jax.jit(lambda k: kenv.strong_types(init(k)))(jax.random.fold_in(jax.random.key(seed),
+                                                                             kenv.LEVEL_NAMES.index(level)))
     blocks = []
     with tqdm(total=per_env * E, desc=f"generate-data {level}", unit="step", disable=not progress,
               file=sys.stderr) as bar:

@@ -21,6 +21,7 @@ pytest.importorskip("kinetix")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
+from softrtc.kinetix import env as kenv  # noqa: E402
 from softrtc.kinetix import expert as kexp  # noqa: E402
 from softrtc.kinetix.curves import plot_curves, read_curve_csv, write_curve_csv  # noqa: E402
 from softrtc.kinetix.ppo import PPOConfig, train_reward  # noqa: E402
@@ -143,6 +144,18 @@ def test_select_experts_threshold_rule(tmp_path):
         select_experts(tmp_path, "grasp_easy", 1.5)
 
 
+def test_strong_types_keeps_values_and_keys():
+    """KP-7: strong_types makes weak leaves strong with the same dtype and values and keeps typed keys."""
+    tree = {"t": jnp.full((2,), 3), "x": jnp.ones((2,), jnp.float32), "k": jax.random.key(1)}
+    assert jax.core.get_aval(tree["t"]).weak_type
+    out = jax.jit(kenv.strong_types)(tree)
+    assert not jax.core.get_aval(out["t"]).weak_type and out["t"].dtype == tree["t"].dtype
+    np.testing.assert_array_equal(np.asarray(out["t"]), [3, 3])
+    assert jnp.issubdtype(out["k"].dtype, jax.dtypes.prng_key)
+    np.testing.assert_array_equal(np.asarray(jax.random.key_data(out["k"])),
+                                  np.asarray(jax.random.key_data(tree["k"])))
+
+
 def test_curves_csv_and_png(tmp_path):
     """KP-8: the curve CSV keeps the column order with empty cells for missing values; the PNG is a PNG."""
     rows = [{"update": 1, "env_steps": 64, "solved": 0.0}, {"update": 2, "env_steps": 128, "solved": float("nan")}]
@@ -182,6 +195,10 @@ def test_pipeline_end_to_end_tiny(tmp_path, capsys, restore_cache):
     assert _cli("kinetix", "train-expert", *lv, "--out", str(run), "--updates", "3", *TINY_PPO, *cc) == 0
     assert _cli("kinetix", "train-expert", *lv, "--out", str(tmp_path / "run3"), "--updates", "3", *TINY_PPO,
                 *cc) == 0
+    from softrtc.kinetix import ppo as kppo
+
+    # One compiled PPO iteration served the fresh run, its resumption and the repeated run ([KP-7]).
+    assert kppo._PROGRAMS and all(update._cache_size() == 1 for _, update in kppo._PROGRAMS.values())
     name = "worlds_l_grasp_easy"
     for u in (0, 1, 2):
         stats = json.loads((run / "seed_0" / str(u) / "stats" / f"{name}.json").read_text())
