@@ -30,6 +30,7 @@ import importlib.metadata
 import json
 import os
 import pickle
+import platform
 import time
 import warnings
 from pathlib import Path
@@ -39,9 +40,10 @@ import jax
 import numpy as np
 
 from softrtc._files import CACHE_ENV, default_cache_dir, unwritable_reason, write_atomic
+from softrtc._machine import cpu_features, cpu_model
 
 __all__ = ["CACHE_ENV", "MIN_COMPILE_S", "MAX_CACHE_BYTES", "default_cache_dir", "enable_compile_cache",
-           "cache_dir", "source_fingerprint", "program_key", "compile_program", "CompiledProgram",
+           "cache_dir", "source_fingerprint", "host_id", "program_key", "compile_program", "CompiledProgram",
            "clear_memory"]
 
 # [KC-2] programs that compile faster than this are not worth a file.
@@ -80,9 +82,10 @@ def enable_compile_cache(path: str | os.PathLike | None | bool = True) -> Path |
         warnings.warn(f"compile cache off: the default folder {root} {reason}; set {CACHE_ENV} to another folder",
                       stacklevel=2)
         return enable_compile_cache(None)
-    (root / "xla").mkdir(parents=True, exist_ok=True)
+    (root / "xla" / host_id()).mkdir(parents=True, exist_ok=True)
     (root / "programs").mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(root / "xla"))
+    # [KC-2]: JAX's own key names the device kind ("cpu") but not the host CPU's instruction set.
+    jax.config.update("jax_compilation_cache_dir", str(root / "xla" / host_id()))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_compilation_cache_max_size", MAX_CACHE_BYTES)
@@ -139,6 +142,16 @@ def source_fingerprint() -> str:
     return _FINGERPRINT[0]
 
 
+def host_id() -> str:
+    """16 hex digits of SHA-256 of the machine type, CPU model and CPU feature flags ([KC-2], [KC-3]).
+
+    An XLA:CPU executable uses the instructions of the CPU it was compiled on; a cache folder shared by
+    machines of different CPUs (a home folder on a cluster) must not hand one machine's programs to another.
+    """
+    parts = [platform.machine(), cpu_model(), list(cpu_features())]
+    return hashlib.sha256(json.dumps(parts).encode()).hexdigest()[:16]
+
+
 def _is_key(x) -> bool:
     return hasattr(x, "dtype") and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
@@ -146,13 +159,14 @@ def _is_key(x) -> bool:
 def program_key(name: str, config: Any, flat_avals: Sequence, flat_shardings: Sequence, treedef,
                 out_sharding) -> str:
     """The key of a program ([KC-3]): SHA-256 of its name, ``config`` (its ``repr``), the flat argument
-    shapes, dtypes and shardings, the argument tree, the devices and :func:`source_fingerprint`."""
+    shapes, dtypes and shardings, the argument tree, the devices, the host CPU (:func:`host_id`) and
+    :func:`source_fingerprint`."""
     devs = jax.devices()
     parts = {"format": _PROGRAM_FORMAT, "name": name, "config": repr(config),
              "avals": [(tuple(a.shape), str(a.dtype)) for a in flat_avals],
              "shardings": [repr(s) for s in flat_shardings], "out": repr(out_sharding), "tree": str(treedef),
              "devices": [(d.platform, d.device_kind, d.id) for d in devs], "processes": jax.process_count(),
-             "x64": bool(jax.config.jax_enable_x64), "xla_flags": os.environ.get("XLA_FLAGS", ""),
+             "x64": bool(jax.config.jax_enable_x64), "xla_flags": os.environ.get("XLA_FLAGS", ""), "host": host_id(),
              "source": source_fingerprint()}
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
 

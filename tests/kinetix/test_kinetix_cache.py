@@ -38,11 +38,11 @@ def test_default_cache_dir_from_environment(monkeypatch, tmp_path):
 
 
 def test_enable_sets_jax_cache_with_lock_and_rejects_unwritable(tmp_path, restore_cache):
-    """KC-1, KC-2: JAX's cache goes to DIR/xla with a size bound (which turns on its file lock);
+    """KC-1, KC-2: JAX's cache goes to DIR/xla/<host id> with a size bound (which turns on its file lock);
     an explicit folder that cannot be written is a ValueError naming path; None turns it off."""
     d = cache.enable_compile_cache(tmp_path / "cc")
-    assert d == tmp_path / "cc" and (d / "xla").is_dir() and (d / "programs").is_dir()
-    assert jax.config.jax_compilation_cache_dir == str(d / "xla")
+    assert d == tmp_path / "cc" and (d / "xla" / cache.host_id()).is_dir() and (d / "programs").is_dir()
+    assert jax.config.jax_compilation_cache_dir == str(d / "xla" / cache.host_id())
     assert jax.config.jax_compilation_cache_max_size == cache.MAX_CACHE_BYTES > 0
     assert jax.config.jax_persistent_cache_min_compile_time_secs == cache.MIN_COMPILE_S
     blocker = tmp_path / "file"
@@ -132,8 +132,9 @@ def test_program_stored_after_a_layer1_hit_runs_from_disk(tmp_path, restore_cach
     np.testing.assert_allclose(np.asarray(got[1]), np.asarray(want[1]), rtol=1e-6)
 
 
-def test_program_key_changes_with_every_input(restore_cache):
-    """KC-3: the key covers name, config, argument shapes, dtypes and shardings and the source digest."""
+def test_program_key_changes_with_every_input(restore_cache, monkeypatch):
+    """KC-3, KC-2: the key covers name, config, argument shapes, dtypes and shardings, the host CPU and the
+    source digest; the host id changes with the CPU's feature flags and model."""
     mesh = Mesh(np.array(jax.devices()), ("env",))
     rep = NamedSharding(mesh, PartitionSpec())
     a = [jax.ShapeDtypeStruct((4,), jnp.float32, sharding=rep)]
@@ -146,7 +147,17 @@ def test_program_key_changes_with_every_input(restore_cache):
                                 rep),
               cache.program_key("n", ("c",), [jax.ShapeDtypeStruct((4,), jnp.int32, sharding=rep)], [rep], tree,
                                 rep)]
-    assert len({base, *others}) == 5
+    host = cache.host_id()
+    assert len(host) == 16 and host == cache.host_id()
+    monkeypatch.setattr(cache, "cpu_features", lambda: ("avx2", "sse2"))
+    host_avx2 = cache.host_id()
+    others.append(cache.program_key("n", ("c",), a, [rep], tree, rep))
+    monkeypatch.setattr(cache, "cpu_features", lambda: ("avx2", "avx512f", "sse2"))
+    assert cache.host_id() != host_avx2
+    others.append(cache.program_key("n", ("c",), a, [rep], tree, rep))
+    monkeypatch.setattr(cache, "cpu_model", lambda: "another CPU")
+    assert cache.host_id() not in (host_avx2, host)
+    assert len({base, *others}) == 7
     fp = cache.source_fingerprint()
     assert len(fp) == 64 and fp == cache.source_fingerprint()
 
