@@ -21,7 +21,7 @@ from softrtc.reference import weights as ref_weights
 from softrtc.reference._validate import check_int
 from softrtc.reference.methods import METHODS
 
-__all__ = ["MethodSpec", "parse_method", "PAPER_METHODS", "method_family", "rollout_weight_table"]
+__all__ = ["MethodSpec", "parse_method", "PAPER_METHODS", "method_family", "FAMILY_SAMPLERS", "rollout_weight_table"]
 
 _DISPLAY = {
     "naive": "Base Naive",
@@ -140,6 +140,11 @@ def method_family(method: str) -> str:
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     return "guided" if method.startswith("inference_") else "rtc"
+
+
+# The sampler each family's compiled rollout runs ([KE-3]): the method's own weight table replaces the
+# sampler's, so one program serves every method and window of the family.
+FAMILY_SAMPLERS = {"rtc": "train_hard", "guided": "inference_hard"}
 
 
 def rollout_weight_table(spec: MethodSpec, H: int, s: int) -> np.ndarray:

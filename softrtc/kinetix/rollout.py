@@ -32,7 +32,7 @@ from softrtc.reference._validate import check_int, real_array
 from . import cache
 from . import env as kenv
 from .limits import EPISODE_STEPS_MAX, EPISODE_STEPS_MIN
-from .methods import MethodSpec, method_family, rollout_weight_table
+from .methods import FAMILY_SAMPLERS, MethodSpec, method_family, rollout_weight_table
 from .protocol import EPISODE_STEPS, EXECUTE_HORIZON, NUM_FLOW_STEPS
 
 __all__ = ["episode_keys", "Rollout", "make_rollout"]
@@ -67,9 +67,7 @@ def _level_task(template: kenv.KinetixTask, level_state) -> kenv.KinetixTask:
 
 def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
     """Pure ``fn(params, level, table, keys [n], delays [n]) -> dict`` of one family ([KE-3]..[KE-6])."""
-    # The family's sampler: the weight table (traced) replaces the method's own, so one program serves
-    # every method and window of the family.
-    sampler = "train_hard" if family == "rtc" else "inference_hard"
+    sampler = FAMILY_SAMPLERS[family]  # with the traced weight table of the method ([KE-3])
 
     def fn(params, level_state, table, keys, delays):
         chunks = FastChunks(nnx.merge(graphdef, params), sampler, s, T, weights=table, stored_transposes=False)
