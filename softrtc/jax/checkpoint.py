@@ -165,12 +165,33 @@ def _fail(path: Any, what: str) -> ValueError:
     return ValueError(f"checkpoint {os.fspath(path)!r}: {what}")
 
 
+# End of central directory record of a zip archive: signature, 16 bytes of fields, then the comment length.
+_EOCD = b"PK\x05\x06"
+_EOCD_SIZE = 22
+
+
+def _check_archive_end(raw: bytes) -> None:
+    """Raise ValueError unless the archive's end-of-directory record (and its comment) ends the file.
+
+    ``zipfile`` searches backwards for the record and ignores whatever follows it, so bytes appended to a
+    checkpoint would otherwise load silently ([T-12]: the file is the checkpoint, whole).
+    """
+    at = raw.rfind(_EOCD, max(0, len(raw) - _EOCD_SIZE - 0xFFFF))
+    if at < 0 or len(raw) - at < _EOCD_SIZE:
+        raise ValueError("no end-of-archive record")
+    end = at + _EOCD_SIZE + int.from_bytes(raw[at + 20:at + 22], "little")
+    if end != len(raw):
+        raise ValueError(f"{len(raw) - end} bytes after the end of the archive" if end < len(raw)
+                         else "the end-of-archive record is cut short")
+
+
 def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
     """Reads and verifies a checkpoint; returns ``(pure_dict, header)`` ([T-12]).
 
     Checks, in order, raising ``ValueError`` that names the file and the problem:
-    the file is a readable archive (truncated or garbled bytes fail here or at the
-    checksum); it has a JSON header; the format tag is :data:`FORMAT`; the version
+    the file is a readable archive that ends where its end-of-archive record ends
+    (truncated, garbled or appended bytes fail here or at the checksum); it has a
+    JSON header (one nested too deeply to parse is a corrupt header too); the format tag is :data:`FORMAT`; the version
     is :data:`VERSION`; the header lists exactly the stored arrays with their
     dtypes and shapes; the checksum matches. The tree is not yet compared with a
     policy (see :func:`load_checkpoint`).
@@ -180,6 +201,8 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
     try:
         with open(path, "rb") as f:
             raw = f.read()
+        if raw[:4] in (b"PK\x03\x04", _EOCD):  # what np.load reads as a zip archive; other bytes fail below
+            _check_archive_end(raw)
         loaded = np.load(io.BytesIO(raw), allow_pickle=False)
         if not isinstance(loaded, np.lib.npyio.NpzFile):  # a .npy file loads as a bare array
             raise ValueError("a single array (.npy), not an .npz archive")
@@ -199,6 +222,9 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
             raise ValueError("header JSON is not an object")
     except (ValueError, UnicodeDecodeError) as exc:
         raise _fail(path, f"corrupt header ({exc})") from exc
+    except RecursionError:
+        # json.loads recurses once per nesting level: a crafted header must not end in a traceback.
+        raise _fail(path, "corrupt header (JSON nested too deeply to read)") from None
 
     if header.get("format") != FORMAT:
         raise _fail(path, f"format tag must be {FORMAT!r}, got {header.get('format')!r}")
@@ -219,6 +245,8 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[dict, dict]:
         checksum = checkpoint_checksum(header, members)
     except ValueError as exc:  # e.g. NaN in the metadata, which no writer of this format produces
         raise _fail(path, f"corrupt header ({exc})") from exc
+    except RecursionError:  # metadata nested just under json.loads's limit still overflows the checks' recursion
+        raise _fail(path, "corrupt header (JSON nested too deeply to check)") from None
     if header.get("checksum") != checksum:
         raise _fail(path, "checksum mismatch (the file was modified or damaged)")
     if not all(name.startswith(PARAM_PREFIX) for name in members):

@@ -223,3 +223,15 @@ def test_study_refuses_a_checkpoint_in_the_wrong_role(tmp_path, capsys):
         load_policies(tmp_path, ["train_soft"])
     pols = load_policies(src, ["naive", "inference_hard", "train_hard", "train_soft"])
     assert [p.trained_as for p in pols.values()] == ["naive", "naive", "train_hard", "train_soft"]
+
+
+def test_arm_loader_refuses_appended_bytes(tmp_path):
+    """[A-18] [T-12] A shipped checkpoint with bytes appended is a damaged file, named in the one error."""
+    from softrtc.arm.checkpoints import default_checkpoint_dir, load_arm_checkpoint
+
+    raw = (default_checkpoint_dir() / "base.npz").read_bytes()
+    (tmp_path / "base.npz").write_bytes(raw + b"\n")
+    with pytest.raises(ValueError, match=r"base\.npz.*1 bytes after the end of the archive"):
+        load_arm_checkpoint(tmp_path / "base.npz")
+    with pytest.raises(ValueError, match=r"base\.npz.*1 bytes after"):
+        load_policies(tmp_path, ["naive"])

@@ -457,6 +457,41 @@ def test_checkpoint_rejects_damaged_files(tmp_path):
         C.load_checkpoint(path, other)
 
 
+def test_checkpoint_rejects_appended_bytes_and_deep_headers(tmp_path):
+    """T-12: bytes after the archive's end and a header nested past the JSON reader's depth are damaged files."""
+    path = tmp_path / "good.npz"
+    C.save_checkpoint(path, _policy(0), {"step": 1})
+    raw = path.read_bytes()
+    header, members = _raw(path)
+    for name, tail in (("tail.npz", b"garbage"), ("zeros.npz", bytes(4096)), ("one.npz", b"\0")):
+        (tmp_path / name).write_bytes(raw + tail)
+        with pytest.raises(ValueError, match=rf"{name}.*{len(tail)} bytes after the end of the archive"):
+            C.load_checkpoint(tmp_path / name)
+    # A record cut inside its 22 bytes is damaged as well.
+    (tmp_path / "cut.npz").write_bytes(raw[:-3])
+    with pytest.raises(ValueError, match=r"cut\.npz.*corrupt"):
+        C.load_checkpoint(tmp_path / "cut.npz")
+    deep = dict(members)
+    deep[C.HEADER_KEY] = np.frombuffer(("[" * 100_000 + "]" * 100_000).encode(), np.uint8)
+    with open(tmp_path / "deep.npz", "wb") as f:
+        np.savez(f, **deep)
+    with pytest.raises(ValueError, match=r"deep\.npz.*corrupt header.*nested too deeply"):
+        C.load_checkpoint(tmp_path / "deep.npz")
+    # Metadata just shallow enough for json.loads still reaches the checksum's recursive checks.
+    import sys
+    nested: list = []
+    for _ in range(sys.getrecursionlimit() - 60):
+        nested = [nested]
+    text = json.dumps(dict(header, metadata={"x": None})).replace('{"x": null}', '{"x": ' + json.dumps(nested) + "}")
+    near = dict(members)
+    near[C.HEADER_KEY] = np.frombuffer(text.encode(), np.uint8)
+    with open(tmp_path / "near.npz", "wb") as f:
+        np.savez(f, **near)
+    with pytest.raises(ValueError, match=r"near\.npz.*corrupt header"):
+        C.load_checkpoint(tmp_path / "near.npz")
+    C.load_checkpoint(path)  # the untouched file still loads
+
+
 def test_checkpoint_argument_validation(tmp_path):
     """T-10 T-11: bad paths, policies and non-JSON metadata are rejected before anything is written."""
     pol = _policy(0)
