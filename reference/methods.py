@@ -9,7 +9,9 @@
 | train_soft      | rtc_sample       | soft_weights(H, d, window, s)                |
 
 For the first chunk of an episode (no prior, d = 0) every method is the naive
-sampler ([X-2]). Arguments a method ignores are still checked ([S-8]).
+sampler ([X-2]). Arguments a method ignores are still checked ([S-8]). The
+training-time methods take a solver ``step`` ([S-10]); naive accepts either
+step, the guided methods only "algorithm1" ([S-14]).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 from ._validate import MAX_HORIZON, check_array, check_choice, check_int
 from .executor import check_delay
 from .guidance import GUIDANCE_SCHEDULES, MAX_GUIDANCE, _guided_sample, check_guided_field
-from .sampler import MAX_STEPS, _naive_sample, _rtc_sample, field_dims
+from .sampler import MAX_STEPS, _naive_sample, _rtc_sample, check_step, field_dims
 from .weights import SoftWindow, _hard, _prefix, _soft, check_window
 
 METHODS = ("naive", "inference_hard", "inference_soft", "train_hard", "train_soft")
@@ -52,13 +54,17 @@ def _method_weights(method: str, H: int, s: int, d: int, window: SoftWindow | No
 
 
 def generate_chunk(method: str, field, obs, noise, prior, s: int, d: int, num_steps: int,
-                   window: SoftWindow | None = None) -> np.ndarray:
+                   window: SoftWindow | None = None, step: str = "algorithm1") -> np.ndarray:
     """One chunk by ``method`` ([S-6]); ``prior`` None means the first chunk (naive, d must be 0).
 
     Arguments the method ignores are checked all the same ([S-8]): the
     delay ([X-1]), a prior of naive (shape of ``noise``), a window of any method.
+    ``step`` ([S-10]) is used by train_hard / train_soft; naive and the first
+    chunk run the naive sampler under either step (bitwise the same, [S-11]);
+    inference_hard / inference_soft reject "consistent" ([S-14]).
     """
     check_choice("method", method, METHODS)
+    step = check_method_step(method, step)
     noise = check_array("noise", noise, ndim=2)
     H = check_int("noise.shape[0]", noise.shape[0], 1, MAX_HORIZON)
     s = check_int("s", s, 1, H)
@@ -85,4 +91,14 @@ def generate_chunk(method: str, field, obs, noise, prior, s: int, d: int, num_st
     w = _method_weights(method, H, s, d, window)
     if method.startswith("inference_"):
         return _guided_sample(field, obs, noise, y, w, T, MAX_GUIDANCE, False)  # [S-6] guided sampler
-    return _rtc_sample(field, obs, noise, y, w, T, False)  # [S-6] training-time sampler
+    return _rtc_sample(field, obs, noise, y, w, T, False, step)  # [S-6] training-time sampler, [S-10]
+
+
+def check_method_step(method: str, step) -> str:
+    """``step`` ([S-10]) if ``method`` can run it: any step for naive and train_*, only
+    "algorithm1" for the guided methods, whose sampler has no blend to change ([S-14])."""
+    step = check_step(step)
+    if method.startswith("inference_") and step != "algorithm1":
+        raise ValueError(f"step must be 'algorithm1' for method {method!r} (the guided sampler has no "
+                         f"blended step, [S-14]), got {step!r}")
+    return step
