@@ -1,0 +1,129 @@
+"""MkDocs hook: the pages generated from the repository when the site is built (nothing here is kept by hand).
+
+- ``spec/<chapter>/``: every chapter of spec/, each requirement id an anchor with its code, vectors and tests
+  (spec_index.py), and ``spec/`` the index of every id;
+- ``code/<path>/``: each source file a spec page links to, every line an anchor;
+- ``conformance/vectors/``: the vector files with case counts, the files themselves downloadable;
+- the reports kept beside their data (results/arm/REPORT.md with its plots, the LeRobot compatibility
+  report, the JavaScript port's README);
+- the navigation, which lists every page under docs/guides/ so a new guide appears without editing the
+  configuration;
+- the versions the site documents (softrtc, spec, vector format) in the header of every page.
+"""
+
+from __future__ import annotations
+
+import ast
+import logging
+from pathlib import Path
+
+from mkdocs.structure.files import File
+
+import spec_index as si
+
+ROOT = Path(__file__).resolve().parents[2]
+log = logging.getLogger("mkdocs.hooks.softrtc")
+
+# Guides shown first, in this order; any other docs/guides/*.md follows in file-name order.
+GUIDE_ORDER = ("validating.md", "porting.md", "commands.md", "jax.md", "torch.md", "arm.md", "kinetix.md")
+# Plots of the arm experiment shown under its report, per task folder that has them.
+ARM_PLOTS = ("success_by_delay.png", "frontier.png", "sweeps.png", "window_weights.png")
+
+
+def _constant(path: Path, name: str) -> str:
+    """A module-level string constant read from source, so the build imports none of the package."""
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == name for t in node.targets):
+            value = ast.literal_eval(node.value)
+            if isinstance(value, str):
+                return value
+    raise ValueError(f"{path} must define the string {name}")
+
+
+def versions() -> dict:
+    """softrtc's version, the spec version and the vector format version, from the sources that define them."""
+    return {"softrtc": _constant(ROOT / "softrtc" / "__init__.py", "__version__"),
+            "spec": _constant(ROOT / "conformance" / "__init__.py", "SPEC_VERSION"),
+            "vectors_format": _constant(ROOT / "conformance" / "__init__.py", "FORMAT_VERSION")}
+
+
+def version_line() -> str:
+    v = versions()
+    return (f"*Documents softrtc {v['softrtc']}: specification {v['spec']}, conformance vectors format "
+            f"{v['vectors_format']}.*")
+
+
+def on_config(config, **kwargs):
+    v = versions()
+    config.site_name = f"softrtc {v['softrtc']} · spec {v['spec']} · vectors {v['vectors_format']}"
+    config.extra["versions"] = v
+    return config
+
+
+def _add(files, config, uri: str, *, content=None, path: Path | None = None) -> None:
+    if path is not None:
+        files.append(File.generated(config, uri, abs_src_path=str(path)))
+    else:
+        files.append(File.generated(config, uri, content=content))
+
+
+def _arm_report(task_dirs) -> str:
+    text = (ROOT / "results" / "arm" / "REPORT.md").read_text(encoding="utf-8")
+    out = [text.rstrip(), "", "## Plots", ""]
+    for task in task_dirs:
+        for name in ARM_PLOTS:
+            if (ROOT / "results" / "arm" / task / name).is_file():
+                out += [f"Task `{task}`, `{name}`:", "", f"![{task} {name}](arm/{task}/{name})", ""]
+    return "\n".join(out)
+
+
+def on_files(files, config, **kwargs):
+    index = si.build_index(ROOT)
+    header = version_line()
+    _add(files, config, "spec/index.md", content=si.render_spec_index(index, header))
+    for ch in index.chapters:
+        _add(files, config, f"spec/{ch.slug}.md", content=si.render_chapter(ch, index, ROOT, header))
+    for path in index.cited_files:
+        _add(files, config, si.code_page_uri(path), content=si.render_code_page(ROOT, path))
+    _add(files, config, "conformance/vectors.md", content=si.render_vectors_page(index, header))
+    for name in index.vector_totals:
+        _add(files, config, f"conformance/vectors/{name}", path=ROOT / "conformance" / "vectors" / name)
+    _add(files, config, "conformance/vectors/index.json", path=ROOT / "conformance" / "vectors" / "index.json")
+    _add(files, config, "conformance/js-port.md", path=ROOT / "conformance" / "ports" / "js" / "README.md")
+    _add(files, config, "reports/lerobot-report.md", path=ROOT / "conformance" / "thirdparty" / "lerobot.md")
+    tasks = sorted(p.name for p in (ROOT / "results" / "arm").iterdir() if p.is_dir())
+    _add(files, config, "reports/arm-report.md", content=_arm_report(tasks))
+    for task in tasks:
+        for name in ARM_PLOTS:
+            p = ROOT / "results" / "arm" / task / name
+            if p.is_file():
+                _add(files, config, f"reports/arm/{task}/{name}", path=p)
+    for p in sorted((ROOT / "results" / "arm" / "realtime").glob("*.png")):
+        _add(files, config, f"reports/arm/realtime/{p.name}", path=p)
+    for p in sorted((ROOT / "results" / "kinetix" / "study").glob("*.png")):
+        _add(files, config, f"reports/kinetix/{p.name}", path=p)
+    config.nav = _nav(files, index)
+    return files
+
+
+def _guides(files) -> list:
+    names = sorted(f.src_uri[len("guides/"):] for f in files.documentation_pages()
+                   if f.src_uri.startswith("guides/") and f.src_uri.count("/") == 1)
+    ordered = [n for n in GUIDE_ORDER if n in names] + [n for n in names if n not in GUIDE_ORDER]
+    return [f"guides/{n}" for n in ordered]
+
+
+def _nav(files, index) -> list:
+    """The site's navigation; the guides are whatever docs/guides/ holds, the spec whatever spec/ holds."""
+    api = sorted(f.src_uri for f in files.documentation_pages() if f.src_uri.startswith("api/"))
+    return [
+        {"Home": "index.md"},
+        {"Install": "install.md"},
+        {"Specification": ["spec/index.md"] + [{ch.title: f"spec/{ch.slug}.md"} for ch in index.chapters]},
+        {"Guides": _guides(files)},
+        {"Conformance": ["conformance/vectors.md", "conformance/js-port.md"]},
+        {"Reports": ["reports/arm.md", "reports/arm-report.md", "reports/lerobot.md", "reports/lerobot-report.md",
+                     "reports/kinetix.md", "reports/benchmarks.md"]},
+        {"API reference": api},
+        {"About this site": "about.md"},
+    ]
