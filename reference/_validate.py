@@ -111,6 +111,18 @@ def check_array(name: str, value, shape: tuple | None = None, ndim: int | None =
     return arr
 
 
+def finite_result(name: str, result, what: str):
+    """``result`` unchanged when every entry is finite; else ValueError naming the input ``name`` ([N-15]).
+
+    Called on what a function computed from inputs that were already checked finite, so a non-finite
+    entry can only come from float64 overflow (or inf - inf after one); ``what`` names the quantity.
+    """
+    if not np.all(np.isfinite(result)):
+        raise ValueError(f"{name} is too large in magnitude: {what} overflows float64 ({np.max(np.abs(result))}); "
+                         f"a finite result needs smaller values ([N-15])")
+    return result
+
+
 def _range(lo, hi) -> str:
     if lo is not None and hi is not None:
         return f" in [{lo}, {hi}]"

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._validate import check_array, check_int, check_real, real_array
+from ._validate import check_array, check_int, check_real, finite_result, real_array
 from .delays import MAX_DELAY
 
 HIGH_DELAYS = (3, 4)
@@ -25,17 +25,22 @@ MAX_ENTRIES = 10**8
 
 
 def finite_differences(actions, order: int) -> np.ndarray:
-    """k-th forward finite difference along time, shape [N - k, A] ([M-1])."""
+    """k-th forward finite difference along time, shape [N - k, A] ([M-1]); overflow is an error ([N-15])."""
     a = check_array("actions", actions, ndim=2)
     k = check_int("order", order, 1, 16)
     if a.shape[0] <= k:
         raise ValueError(f"actions must have more than order={k} steps, got {a.shape[0]}")
-    return np.diff(a, n=k, axis=0)  # [M-1] Δ^k a_t
+    with np.errstate(over="ignore", invalid="ignore"):  # [N-15]: reported below, not warned about
+        diff = np.diff(a, n=k, axis=0)  # [M-1] Δ^k a_t
+    return finite_result("actions", diff, f"the order-{k} finite difference")
 
 
 def difference_norm(actions, order: int) -> float:
-    """D_k = mean over t of || Δ^k a_t ||_2 ([M-1])."""
-    return float(np.mean(np.linalg.norm(finite_differences(actions, order), axis=-1)))  # [M-1]
+    """D_k = mean over t of || Δ^k a_t ||_2 ([M-1]); overflow is an error naming ``actions`` ([N-15])."""
+    diff = finite_differences(actions, order)
+    with np.errstate(over="ignore", invalid="ignore"):
+        d = np.mean(np.linalg.norm(diff, axis=-1))  # [M-1]
+    return float(finite_result("actions", d, f"D_{order}, the mean norm of the finite differences"))
 
 
 def action_delta(actions) -> float:
@@ -69,7 +74,9 @@ def boundary_jump(actions, chunk_index) -> float:
     sw = _switch_steps(ci)
     if sw.size == 0:
         raise ValueError("chunk_index has no chunk switch; the boundary jump needs at least one")
-    return float(np.mean(np.linalg.norm(a[sw] - a[sw - 1], axis=-1)))  # [M-3] mean || a_t - a_{t-1} || over switches
+    with np.errstate(over="ignore", invalid="ignore"):  # [N-15]: reported below, not warned about
+        jump = np.mean(np.linalg.norm(a[sw] - a[sw - 1], axis=-1))  # [M-3] mean || a_t - a_{t-1} || over switches
+    return float(finite_result("actions", jump, "the boundary jump"))
 
 
 def solve_rate(solved) -> float:
@@ -81,11 +88,13 @@ def solve_rate(solved) -> float:
 
 
 def standard_error(values) -> float:
-    """Standard error of the mean, std(ddof=1) / sqrt(n), n >= 2 ([M-6])."""
+    """Standard error of the mean, std(ddof=1) / sqrt(n), n >= 2 ([M-6]); overflow is an error ([N-15])."""
     v = check_array("values", values, ndim=1)
     if v.size < 2:
         raise ValueError(f"values must hold at least 2 entries, got {v.size}")
-    return float(np.std(v, ddof=1) / np.sqrt(v.size))
+    with np.errstate(over="ignore", invalid="ignore"):  # [N-15]: reported below, not warned about
+        se = np.std(v, ddof=1) / np.sqrt(v.size)
+    return float(finite_result("values", se, "the standard error"))
 
 
 def defined_values(values) -> np.ndarray:
@@ -97,13 +106,17 @@ def defined_values(values) -> np.ndarray:
 
 
 def defined_mean(values) -> float:
-    """Mean of the defined values ([M-8]); NaN when none is defined.
+    """Mean of the defined values ([M-8]); NaN when none is defined; a mean that overflows is an error ([N-15]).
 
         >>> defined_mean([1.0, float("nan"), 3.0])
         2.0
     """
     v = defined_values(values)
-    return float(v.mean()) if v.size else float("nan")
+    if not v.size:
+        return float("nan")
+    with np.errstate(over="ignore", invalid="ignore"):  # [N-15]: reported below, not warned about
+        mean = v.mean()
+    return float(finite_result("values", mean, "the mean of the defined values"))
 
 
 def bootstrap_indices(num_values: int, num_resamples: int, seed: int) -> np.ndarray:
@@ -117,15 +130,17 @@ def bootstrap_indices(num_values: int, num_resamples: int, seed: int) -> np.ndar
 
 
 def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -> tuple[float, float]:
-    """Percentile interval of resampled means ([M-5]), numpy's 'linear' quantiles."""
+    """Percentile interval of resampled means ([M-5]), numpy's 'linear' quantiles; overflow is an error ([N-15])."""
     v = check_array("values", values, ndim=1)
     idx = real_array("indices", indices, "iu")
     if idx.ndim != 2 or idx.shape[0] < 1 or idx.shape[1] != v.size or not np.issubdtype(idx.dtype, np.integer) \
             or idx.min() < 0 or idx.max() >= v.size:
         raise ValueError(f"indices must be an integer array [B, {v.size}], B >= 1, with entries in [0, {v.size - 1}]")
     c = check_real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
-    means = v[idx].mean(axis=1)
-    lo, hi = np.quantile(means, [(1.0 - c) / 2.0, 1.0 - (1.0 - c) / 2.0])
+    with np.errstate(over="ignore", invalid="ignore"):  # [N-15]: reported below, not warned about
+        means = v[idx].mean(axis=1)
+        lo, hi = np.quantile(means, [(1.0 - c) / 2.0, 1.0 - (1.0 - c) / 2.0])
+    finite_result("values", np.array([lo, hi]), "a resampled mean or its quantile")
     return float(lo), float(hi)
 
 

@@ -235,6 +235,21 @@ def check_finite(name: str, arr) -> None:
         raise ValueError(f"{name} must contain only finite values (no NaN or inf)")
 
 
+def finite_result(name: str, result, what: str):
+    """``result`` unchanged; a concrete one with a non-finite entry is a ValueError naming the input ``name``.
+
+    [N-15]: the inputs were checked finite, so a non-finite result is an overflow of the array's float type.
+    A traced result is not inspected (a compiled call cannot raise; IEEE inf and NaN propagate there).
+    """
+    if not any(is_traced(r) for r in jax.tree_util.tree_leaves(result)):
+        host = [np.asarray(r) for r in jax.tree_util.tree_leaves(result)]
+        if not all(np.all(np.isfinite(h)) for h in host):
+            dtype = host[0].dtype
+            raise ValueError(f"{name} is too large in magnitude: {what} overflows {dtype}; a finite result "
+                             f"needs smaller values ([N-15])")
+    return result
+
+
 def check_nonempty(name: str, arr) -> None:
     """[N-12] ``arr`` has no empty axis; a shape check, free under jit."""
     if 0 in tuple(arr.shape):

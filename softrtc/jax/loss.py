@@ -28,8 +28,9 @@ def _check_triple(pred, actions, noise):
 
 
 def token_errors(pred, actions, noise) -> jax.Array:
-    """l_j = sum_a (v - (A - eps))^2 ([L-1]); [..., H, A] -> [..., H]."""
-    return _token_errors(*_check_triple(pred, actions, noise))
+    """l_j = sum_a (v - (A - eps))^2 ([L-1]); [..., H, A] -> [..., H]; a concrete overflow raises ([N-15])."""
+    return v.finite_result("pred", _token_errors(*_check_triple(pred, actions, noise)),
+                           "the squared error || pred - (actions - noise) ||^2")
 
 
 def _token_errors(p, a, n):
@@ -37,13 +38,20 @@ def _token_errors(p, a, n):
 
 
 def flow_matching_loss(pred, actions, noise, weights, eta=ETA) -> jax.Array:
-    """Per-example loss sum_j (1 - w_j) l_j / (sum_j (1 - w_j) + eta) ([L-2], [L-4]); shape [...]."""
+    """Per-example loss sum_j (1 - w_j) l_j / (sum_j (1 - w_j) + eta) ([L-2], [L-4]); shape [...].
+
+    A concrete loss that overflows the float type raises, naming ``pred`` ([N-15]).
+    """
+    return _checked_loss(pred, actions, noise, weights, eta, "pred")
+
+
+def _checked_loss(pred, actions, noise, weights, eta, name):
     p, a, n = _check_triple(pred, actions, noise)
     w = v.array("weights", weights, lo=0.0, hi=1.0)
     if w.shape != p.shape[:-1]:
         raise ValueError(f"weights must have shape {list(p.shape[:-1])}, got {list(w.shape)}")
     eta = v.real_value("eta", eta, 0.0, 1.0, lo_open=True)
-    return _weighted(p, a, n, w, eta)
+    return v.finite_result(name, _weighted(p, a, n, w, eta), "the weighted sum of squared errors")
 
 
 @jax.jit
@@ -54,11 +62,15 @@ def _weighted(pred, actions, noise, w, eta):
 
 
 def batch_loss(preds, actions, noise, weights, eta=ETA) -> jax.Array:
-    """Unweighted mean of per-example losses ([L-3]); arrays [B, H, A], weights [B, H], B >= 1."""
+    """Unweighted mean of per-example losses ([L-3]); arrays [B, H, A], weights [B, H], B >= 1.
+
+    A concrete loss that overflows the float type raises, naming ``preds`` ([N-15]).
+    """
     p = v.array("preds", preds, ndim=3)
     if p.shape[0] == 0:
         raise ValueError("preds must have batch size >= 1, got 0")
-    return _mean(flow_matching_loss(p, actions, noise, weights, eta))
+    per_example = _checked_loss(p, actions, noise, weights, eta, "preds")
+    return v.finite_result("preds", _mean(per_example), "the mean of the per-example losses")
 
 
 @jax.jit

@@ -31,12 +31,12 @@ def _actions(actions):
 
 
 def finite_differences(actions, order: int) -> jax.Array:
-    """k-th forward finite difference along time, [N - k, A] ([M-1]); N > k."""
+    """k-th forward finite difference along time, [N - k, A] ([M-1]); N > k; a concrete overflow raises ([N-15])."""
     a = _actions(actions)
     k = v.check_int("order", order, 1, 16)
     if a.shape[0] <= k:
         raise ValueError(f"actions must have more than order={k} steps, got {a.shape[0]}")
-    return jnp.diff(a, n=k, axis=0)
+    return v.finite_result("actions", jnp.diff(a, n=k, axis=0), f"the order-{k} finite difference")
 
 
 def _length(length, N, k):
@@ -48,14 +48,15 @@ def _length(length, N, k):
 def difference_norm(actions, order: int, length=None) -> jax.Array:
     """D_k = mean_t || Δ^k a_t ||_2 ([M-1]); with ``length`` only the first ``length`` steps count.
 
-    ``length`` (traced or concrete) must lie in [k + 1, N].
+    ``length`` (traced or concrete) must lie in [k + 1, N]. A concrete D_k that overflows raises ([N-15]).
     """
     a = _actions(actions)
     k = v.check_int("order", order, 1, 16)
     if a.shape[0] <= k:
         raise ValueError(f"actions must have more than order={k} steps, got {a.shape[0]}")
     n = _length(length, a.shape[0], k)
-    return _difference_norm(a, k, a.shape[0] if n is None else n)
+    return v.finite_result("actions", _difference_norm(a, k, a.shape[0] if n is None else n),
+                           f"D_{k}, the mean norm of the finite differences")
 
 
 # The public functions check on the host and call jitted cores: eager JAX would
@@ -92,7 +93,8 @@ def boundary_jump(actions, chunk_index, length=None) -> jax.Array:
     """Mean || a_t - a_{t-1} || over chunk-switch steps t ([M-3]); NaN if there is no switch.
 
     The reference raises when there is no switch; here that is checked when
-    ``chunk_index`` is concrete, and traced inputs without a switch give NaN (0/0).
+    ``chunk_index`` is concrete, and traced inputs without a switch give NaN (0/0). A concrete jump that
+    overflows raises ([N-15]).
     """
     a = _actions(actions)
     ci = v.int_array("chunk_index", chunk_index, shape=(a.shape[0],))
@@ -101,7 +103,7 @@ def boundary_jump(actions, chunk_index, length=None) -> jax.Array:
         mask = mask & (jnp.arange(a.shape[0]) < v.int_value("length", length, 1, a.shape[0]))
     if not v.is_traced(mask) and not bool(jnp.any(mask)):
         raise ValueError("chunk_index has no chunk switch; the boundary jump needs at least one")
-    return _boundary_jump(a, mask)
+    return v.finite_result("actions", _boundary_jump(a, mask), "the boundary jump")
 
 
 @jax.jit
@@ -126,11 +128,11 @@ def solve_rate(solved) -> jax.Array:
 
 
 def standard_error(values) -> jax.Array:
-    """std(ddof=1) / sqrt(n), n >= 2 ([M-6])."""
+    """std(ddof=1) / sqrt(n), n >= 2 ([M-6]); a concrete overflow raises ([N-15])."""
     x = v.array("values", values, ndim=1)
     if x.shape[0] < 2:
         raise ValueError(f"values must hold at least 2 entries, got {x.shape[0]}")
-    return _standard_error(x)
+    return v.finite_result("values", _standard_error(x), "the standard error")
 
 
 @jax.jit
@@ -142,7 +144,7 @@ def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -
     """Percentile interval of resampled means with linear quantiles ([M-5]).
 
     ``indices [B, n]`` is the resample matrix (e.g. :data:`bootstrap_indices`);
-    ``confidence`` is static.
+    ``confidence`` is static. A concrete interval that overflows raises ([N-15]).
     """
     x = v.array("values", values, ndim=1)
     if x.shape[0] > _ref.MAX_VALUES:
@@ -155,7 +157,7 @@ def bootstrap_interval_from_indices(values, indices, confidence: float = 0.95) -
     if not v.is_traced(idx) and idx.size and (int(idx.min()) < 0 or int(idx.max()) >= x.shape[0]):
         raise ValueError(f"indices must be an integer array [B, {x.shape[0]}] with entries in [0, {x.shape[0] - 1}]")
     c = v.check_real("confidence", confidence, 0.0, 1.0, lo_open=True, hi_open=True)
-    return _bootstrap(x, idx, c)
+    return v.finite_result("values", _bootstrap(x, idx, c), "a resampled mean or its quantile")
 
 
 @functools.partial(jax.jit, static_argnums=(2,))

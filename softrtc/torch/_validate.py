@@ -165,3 +165,15 @@ def output(name: str, value, x: torch.Tensor) -> torch.Tensor:
     if value.shape != x.shape:
         raise ValueError(f"{name} must return a tensor of the state's shape {list(x.shape)}, got {list(value.shape)}")
     return value
+
+
+def finite_result(name: str, result: torch.Tensor, what: str) -> torch.Tensor:
+    """``result`` unchanged; with a non-finite entry, a ValueError naming the input ``name`` ([N-15]).
+
+    The inputs were checked finite, so a non-finite result is an overflow of the tensor's dtype. Skipped while
+    ``torch.compile`` traces, like every value check of this module.
+    """
+    if not compiling() and result.is_floating_point() and not bool(torch.isfinite(result.detach()).all()):
+        raise ValueError(f"{name} is too large in magnitude: {what} overflows {result.dtype}; a finite result "
+                         f"needs smaller values ([N-15])")
+    return result

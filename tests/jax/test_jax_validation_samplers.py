@@ -392,3 +392,29 @@ def test_metrics_name_ragged_arguments():
         with pytest.raises(ValueError, match=match):
             call()
     assert float(JMt.action_delta([[0.0, 0.0], [3.0, 4.0]])) == 5.0
+
+
+def test_overflow_of_concrete_results_is_an_error():
+    """[N-15] [N-10] Finite float32 inputs whose loss or metric overflows float32 raise ValueError naming the
+    input when called with concrete arrays; under jit the same call is not inspected and gives inf."""
+    from softrtc.jax import metrics as JMt
+
+    big = 1e30  # finite in float32 (limit about 3.4e38); its square, 1e60, is not
+    z = np.zeros((2, 1), np.float32)
+    cases = [("pred", lambda: JL.token_errors(np.full((2, 1), big, np.float32), z, z)),
+             ("pred", lambda: JL.flow_matching_loss(np.full((2, 1), big, np.float32), z, z, np.zeros(2))),
+             ("preds", lambda: JL.batch_loss(np.full((1, 2, 1), big, np.float32), z[None], z[None], np.zeros((1, 2)))),
+             ("actions", lambda: JMt.action_delta(np.array([[3e38], [-3e38]], np.float32))),
+             # Two action dimensions: XLA may fold sqrt(x * x) of a single one into |x|, which cannot overflow.
+             ("actions", lambda: JMt.action_jerk(np.array([[0.0, 0.0], [big, big], [0.0, 0.0]], np.float32))),
+             ("actions", lambda: JMt.boundary_jump(np.array([[big, big], [-big, -big]], np.float32),
+                                                   np.array([0, 1]))),
+             ("values", lambda: JMt.standard_error(np.array([big, -big], np.float32))),
+             ("values", lambda: JMt.bootstrap_interval(np.array([3e38, 3e38], np.float32), 4, 0))]
+    for name, call in cases:
+        with pytest.raises(ValueError, match=rf"^{name} is too large in magnitude: .* overflows float32"):
+            call()
+    assert np.isinf(jax.jit(JL.token_errors)(np.full((2, 1), big, np.float32), z, z)).all()
+    # 2^60 squared is 2^120, exact in float32.
+    assert JL.token_errors(np.full((2, 1), 2.0**60, np.float32), z, z).tolist() == [2.0**120, 2.0**120]
+    assert float(JMt.action_delta(np.array([[2.0**60], [-(2.0**60)]], np.float32))) == 2.0**61

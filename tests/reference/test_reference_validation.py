@@ -448,3 +448,47 @@ def test_bootstrap_matrix_size_is_bounded():
     idx = metrics.bootstrap_indices(2, 5 * 10**6, 0)
     assert idx.shape == (5 * 10**6, 2) and idx.min() == 0 and idx.max() == 1
     np.testing.assert_array_equal(idx[:3], np.random.default_rng(0).integers(0, 2, (3, 2)))
+
+
+# Inputs every check of [N-7] accepts whose loss or metric overflows float64 (hand-picked: 1e300 ** 2 and
+# 1.5e308 - (-1.5e308) exceed the float64 limit of about 1.8e308).
+BIG = 1.5e308
+
+
+def _overflow_calls():
+    z = np.zeros((2, 1))
+    return [
+        ("pred", lambda: loss.token_errors(np.full((2, 1), 1e300), z, z)),
+        ("pred", lambda: loss.token_errors(np.full((2, 1), 1e200), np.full((2, 1), -1e200), z)),
+        ("pred", lambda: loss.flow_matching_loss(np.full((2, 1), 1e300), z, z, np.zeros(2))),
+        # Each l_j = 1.21e308 is finite; their weighted sum is not.
+        ("pred", lambda: loss.flow_matching_loss(np.full((2, 1), 1.1e154), z, z, np.zeros(2))),
+        ("preds", lambda: loss.batch_loss(np.full((2, 2, 1), 1.1e154), np.zeros((2, 2, 1)), np.zeros((2, 2, 1)),
+                                          np.zeros((2, 2)))),
+        ("actions", lambda: metrics.action_delta(np.array([[BIG], [-BIG]]))),
+        ("actions", lambda: metrics.finite_differences(np.array([[BIG], [-BIG]]), 1)),
+        # Differences 1e154 * (1, 1) are finite; the norm's squares are not.
+        ("actions", lambda: metrics.action_jerk(np.array([[0.0, 0.0], [1e200, 1e200], [0.0, 0.0]]))),
+        ("actions", lambda: metrics.boundary_jump(np.array([[BIG], [-BIG], [-BIG]]), np.array([0, 1, 1]))),
+        ("values", lambda: metrics.standard_error(np.array([BIG, -BIG]))),
+        ("values", lambda: metrics.defined_mean(np.array([BIG, BIG, np.nan]))),
+        ("values", lambda: metrics.bootstrap_interval(np.array([BIG, BIG, BIG]), 10, 0)),
+    ]
+
+
+def test_overflow_from_finite_inputs_is_an_error():
+    """[N-15] A loss or metric that overflows float64 from finite inputs raises ValueError naming the input,
+    never returns inf or NaN; just below the limit the hand-computed values come back."""
+    import warnings
+
+    for name, call in _overflow_calls():
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # the overflow is reported once, as the error, not as a warning
+            with pytest.raises(ValueError, match=rf"^{name} is too large in magnitude: .* overflows float64"):
+                call()
+    z = np.zeros((2, 1))
+    # Powers of two keep every hand-computed value exact; 2^1023 is the largest finite power.
+    assert loss.token_errors(np.full((2, 1), 2.0**511), z, z).tolist() == [2.0**1022, 2.0**1022]
+    assert metrics.action_delta(np.array([[2.0**500], [-(2.0**500)]])) == 2.0**501
+    assert metrics.standard_error(np.array([2.0**500, -(2.0**500)])) == pytest.approx(2.0**500)  # sqrt(2^1001) / sqrt 2
+    assert metrics.defined_mean(np.array([2.0**1022, 2.0**1022, np.nan])) == 2.0**1022

@@ -259,3 +259,31 @@ def test_policy_shared_and_per_token_time_and_conditioning(architecture):
     first = FlowPolicy(5, 3, model.config, generator=torch.Generator().manual_seed(8))
     assert all(torch.equal(p, q) for p, q in zip(first.parameters(), same.parameters()))
     assert any(not torch.equal(p, q) for p, q in zip(first.parameters(), other.parameters()))
+
+
+def test_overflow_of_results_is_an_error():
+    """[N-15] [PT-2] Finite inputs whose loss or metric overflows the tensors' dtype raise ValueError naming the
+    input (float32: 1e30 ** 2; float64: 1e300 ** 2), for the loss, the metrics and the bootstrap interval."""
+    from softrtc.torch import metrics
+
+    for dtype, big in ((torch.float32, 1e30), (torch.float64, 1e300)):
+        z = torch.zeros(2, 2, dtype=dtype)
+        p = torch.full((2, 2), big, dtype=dtype)
+        cases = [("pred", lambda: loss.token_errors(p, z, z)),
+                 ("pred", lambda: loss.token_errors(p, z, z, "noise_at_1")),
+                 ("pred", lambda: loss.loss(p, z, z, torch.zeros(2, dtype=dtype))),
+                 ("preds", lambda: loss.batch_loss(p[None], z[None], z[None], torch.zeros(1, 2, dtype=dtype))),
+                 ("actions", lambda: metrics.action_delta(torch.stack([p[0], -p[0]]))),
+                 ("actions", lambda: metrics.action_jerk(torch.stack([z[0], p[0], z[0]]))),
+                 ("actions", lambda: metrics.boundary_jump(torch.stack([p[0], -p[0]]), torch.tensor([0, 1]))),
+                 # std of (0.9 max, -0.9 max) is 0.9 max * sqrt(2), past the limit however it is summed.
+                 ("values", lambda: metrics.standard_error(torch.tensor([0.9, -0.9], dtype=dtype)
+                                                           * torch.finfo(dtype).max)),
+                 ("values", lambda: metrics.bootstrap_interval(torch.full((2,), torch.finfo(dtype).max, dtype=dtype),
+                                                               torch.tensor([[0, 1], [1, 1]])))]
+        for name, call in cases:
+            with pytest.raises(ValueError, match=rf"^{name} is too large in magnitude: .* overflows {dtype}"):
+                call()
+    # 2^60 squared, summed over two dimensions, is 2^121: exact in float32.
+    x = torch.full((1, 2), 2.0**60)
+    assert loss.token_errors(x, torch.zeros(1, 2), torch.zeros(1, 2)).tolist() == [2.0**121]
