@@ -162,8 +162,20 @@ def leaf_progs(parser: argparse.ArgumentParser) -> None:
 
 
 def group_help(parser: argparse.ArgumentParser) -> Callable[[argparse.Namespace], int]:
-    """``func`` of a command group run without a subcommand: print its help, exit status 2 (a usage error)."""
+    """``func`` of a command group run without a subcommand: a usage error ([N-11]), see :func:`missing_subcommand`."""
     def show(args) -> int:
-        parser.print_help()
-        return 2
+        return missing_subcommand(parser)
     return show
+
+
+def missing_subcommand(parser: argparse.ArgumentParser) -> int:
+    """[N-11] The usage line and ``PROG: error: a subcommand is needed (one of: ...)`` on stderr; returns 2.
+
+    As argparse reports every other usage error: stdout stays empty, so a script that captures it gets
+    nothing, and the status says the invocation was wrong. ``--help`` still prints the help on stdout.
+    """
+    names = [name for action in parser._actions if isinstance(action, argparse._SubParsersAction)
+             for name in action.choices]
+    parser.print_usage(sys.stderr)
+    print(f"{parser.prog}: error: a subcommand is needed (one of: {', '.join(names)})", file=sys.stderr)
+    return 2

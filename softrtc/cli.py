@@ -13,7 +13,7 @@ import importlib.util
 import os
 import sys
 
-from ._cli_util import command_error, leaf_progs
+from ._cli_util import command_error, leaf_progs, missing_subcommand
 
 # (module, the name its demo step and missing-extra line go by, extra that provides its dependencies)
 _SUBCOMMAND_MODULES = [
@@ -111,9 +111,8 @@ def main(argv=None) -> int:
     if extra:  # reported by the parser of the command they were given to, with its usage line
         args._parser.error(f"unrecognized arguments: {' '.join(extra)}")
     if not getattr(args, "func", None):
-        # [N-11] Like a command group without its subcommand: the help, and the status of a usage error.
-        parser.print_help()
-        return 2
+        # [N-11] Like a command group without its subcommand: a usage error on stderr, status 2.
+        return missing_subcommand(parser)
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:

@@ -191,10 +191,27 @@ def test_traceback_switch_reraises_in_every_command(argv, exc, monkeypatch):
         main(argv)
 
 
-def test_softrtc_alone_is_a_usage_error(capsys):
-    """N-11: `softrtc` without a command prints its help and exits with 2, as a command group does."""
-    assert status([]) == 2
-    assert capsys.readouterr().out.startswith("usage: softrtc ")
+@pytest.mark.parametrize("argv, names", [
+    ([], "demo, weights, examples, conformance, bench, arm, kinetix"),
+    (["conformance"], "run, generate, report, rollout"),
+    (["bench"], "runtime, vjp, table, torch"),
+    (["arm"], "train, study, expert, experiment, screen, report, torch"),
+    (["kinetix"], "eval, finetune, bench, levels, train-expert, generate-data, train-bc, screen"),
+])
+def test_a_command_group_alone_is_a_usage_error(argv, names, capsys):
+    """N-11: `softrtc` without a command, and each command group without its subcommand, is a usage error as
+    argparse reports one: nothing on stdout, the usage line and one error line naming the subcommands on
+    stderr, status 2; `--help` prints the help on stdout with status 0."""
+    prog = " ".join(["softrtc"] + argv)
+    assert status(argv) == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    lines = err.splitlines()
+    assert lines[0].startswith(f"usage: {prog} [-h] ")
+    assert lines[-1] == f"{prog}: error: a subcommand is needed (one of: {names})"
+    assert status(argv + ["--help"]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith(f"usage: {prog} ") and err == ""
 
 
 def test_integer_options_take_plain_decimals_only():
@@ -305,7 +322,7 @@ def test_cli_stops_quietly_when_its_reader_goes_away():
 
 def test_pickle_loaders_warn_that_files_must_be_trusted(capsys):
     """KE-10, P-8: every option that unpickles release policies says in its --help that unpickling can run code
-    and only trusted files may be loaded; so does the README's Kinetix section."""
+    and only trusted files may be loaded; so does the Kinetix guide (docs/guides/kinetix.md)."""
     pytest.importorskip("kinetix")
     warning = "The .pkl files are unpickled, which can run code stored in them: load only files from a source " \
               "you trust."
@@ -322,5 +339,5 @@ def test_pickle_loaders_warn_that_files_must_be_trusted(capsys):
         for option in options:
             text = " ".join(" ".join(blocks[option]).split())  # argparse wraps lines
             assert text.endswith(warning), (option, text)
-    readme = " ".join((ROOT / "README.md").read_text().split())
+    readme = " ".join((ROOT / "docs" / "guides" / "kinetix.md").read_text().split())
     assert "so load only files from a source you trust" in readme and "unpickling can run code" in readme
