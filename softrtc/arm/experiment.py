@@ -33,6 +33,7 @@ import numpy as np
 
 from softrtc.reference import endpoints as rep
 from softrtc.reference import weights as rw
+from softrtc.reference.methods import check_method_step
 
 from .tasks import ArmTask, get_task
 
@@ -56,7 +57,9 @@ class Row:
     ``objective``: ``None`` (the base), ``hard``, ``soft`` or ``prior_noise``
     (the project's variant, [AX-5]); ``window`` the training window (soft
     objectives); ``sampler`` a method of [S-6]; ``sampler_window`` the
-    window a ``train_soft`` sampler runs with (default: ``window``).
+    window a ``train_soft`` sampler runs with (default: ``window``);
+    ``step`` the training-time sampler's solver step ([S-10], default
+    Algorithm 1's).
     """
 
     name: str
@@ -67,6 +70,10 @@ class Row:
     sampler_window: rw.SoftWindow | None = None
     tier: str = "main"
     origin: str = "paper"
+    step: str = "algorithm1"
+
+    def __post_init__(self):
+        check_method_step(self.sampler, self.step)
 
     @property
     def infer_window(self):
@@ -140,9 +147,24 @@ def _sampler_table(row: Row, task: ArmTask) -> tuple:
     return (row.sampler,)
 
 
+def _sampler_step(row: Row, task: ArmTask) -> str:
+    """The solver step as far as it changes a chunk: "algorithm1" unless a training-time sampler has
+    window tokens (0 < w < 1) at some executable delay ([S-11])."""
+    if row.step == "algorithm1" or not row.sampler.startswith("train_"):
+        return "algorithm1"
+    t = (_table(row.infer_window, task.execute_horizon, range(task.max_delay + 1)) if row.sampler == "train_soft"
+         else np.zeros((1, H)))
+    return row.step if bool(np.any((t > 0) & (t < 1))) else "algorithm1"
+
+
 def eval_key(row: Row, task: ArmTask) -> str:
-    """Rows with equal checkpoints and equal samplers produce the same episodes and share them."""
-    raw = repr((train_key(row, task), _sampler_table(row, task))).encode()
+    """Rows with equal checkpoints and equal samplers produce the same episodes and share them.
+
+    The solver step is part of the key only where it changes a chunk, so the keys of rows with
+    Algorithm 1's step (every committed cell) are those they had before steps could be chosen."""
+    ident = (train_key(row, task), _sampler_table(row, task))
+    step = _sampler_step(row, task)
+    raw = repr(ident if step == "algorithm1" else ident + (step,)).encode()
     return hashlib.sha256(raw).hexdigest()[:16]
 
 
@@ -212,7 +234,7 @@ def read_episodes(path) -> list:
 # --------------------------------------------------------------------------- policies
 
 
-def _arm_policy(model, normalizer, task: ArmTask, sampler: str, window):
+def _arm_policy(model, normalizer, task: ArmTask, sampler: str, window, step: str = "algorithm1"):
     from softrtc.jax.weights import from_reference
 
     from .policies import ArmPolicy
@@ -220,7 +242,7 @@ def _arm_policy(model, normalizer, task: ArmTask, sampler: str, window):
 
     cfg = ArmPolicyConfig(execute_horizon=task.execute_horizon)
     return ArmPolicy(model, normalizer, cfg, sampler, window=None if window is None else from_reference(window),
-                     env_config=task.env_config)
+                     env_config=task.env_config, step=step)
 
 
 def _load(path, task: ArmTask, row: Row):
@@ -228,7 +250,7 @@ def _load(path, task: ArmTask, row: Row):
 
     base = load_arm_checkpoint(path)
     return _arm_policy(base.model, base.normalizer, task, row.sampler,
-                       row.infer_window if row.sampler == "train_soft" else None)
+                       row.infer_window if row.sampler == "train_soft" else None, row.step)
 
 
 def _run_cell(args) -> tuple:
@@ -406,7 +428,9 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
                 "rows": {r.name: {"label": r.label, "sampler": r.sampler, "objective": r.objective, "tier": r.tier,
                                   "origin": r.origin, "train_key": train_key(r, task), "eval_key": eval_key(r, task),
                                   "window": None if r.window is None else r.window.to_dict(),
-                                  "sampler_window": None if r.infer_window is None else r.infer_window.to_dict()}
+                                  "sampler_window": None if r.infer_window is None else r.infer_window.to_dict(),
+                                  # [S-10] named only when not Algorithm 1's, so older manifests read the same
+                                  **({} if r.step == "algorithm1" else {"step": r.step})}
                          for r in all_rows},
                 "order": [r.name for r in all_rows]}
     # Compared as JSON: tuples come back from the file as lists.

@@ -17,6 +17,7 @@ from softrtc.jax.fast_chunks import FastChunks
 from softrtc.jax.policy import FlowPolicy
 from softrtc.jax.weights import SoftWindow
 from softrtc.reference._validate import check_choice, check_int
+from softrtc.reference.methods import check_method_step
 
 from .env import ACTION_DIM, OBS_DIM, ArmConfig
 from .features import FEATURE_DIM, Normalizer, _real_array, action_bounds, policy_features
@@ -53,14 +54,17 @@ class ArmPolicy:
     which every method generates with the naive sampler and ``d = 0`` ([X-2]).
     The network's output is mapped back to physical units and clipped to the
     action ranges of [A-8] ([A-19]); the clipped chunk is what is executed and
-    what later priors are built from.
+    what later priors are built from. ``step`` is the training-time sampler's
+    solver step ([S-10]), default "algorithm1"; the guided methods take only
+    that one ([S-14]).
     """
 
     def __init__(self, model: FlowPolicy, normalizer: Normalizer, config: ArmPolicyConfig, method: str,
                  trained_as: str | None = None, meta: dict | None = None, env_config: ArmConfig | None = None,
-                 window: SoftWindow | None = None):
+                 window: SoftWindow | None = None, step: str = "algorithm1"):
         check_parts(model, normalizer, config)
         self.method = check_choice("method", method, jmethods.METHODS)
+        self.step = check_method_step(self.method, step)
         _check_window(window)
         if trained_as is not None and not isinstance(trained_as, str):
             raise ValueError(f"trained_as must be a str or None, got {trained_as!r}")
@@ -86,7 +90,7 @@ class ArmPolicy:
         if self._fast is None:
             # Only train_soft has a window ([W-7]); a window given to another method is checked against H ([S-8]).
             window = self.window if self.method == "train_soft" else None
-            self._fast = FastChunks(self.model, self.method, self.s, self.T, window)
+            self._fast = FastChunks(self.model, self.method, self.s, self.T, window, step=self.step)
         return self._fast
 
     def _obs(self, obs) -> np.ndarray:

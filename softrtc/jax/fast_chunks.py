@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from softrtc.reference.methods import check_method_step
+
 from . import _validate as v
 from .methods import (METHODS, _check_tables, delay_rows, generate_chunk_conditioned, generate_chunk_from_row,
                       method_tables)
@@ -106,6 +108,7 @@ class _Spec(NamedTuple):
     s: int
     T: int
     guided: Any  # "rule" (guided_tokens_for at the traced batch size) or a fixed guided_tokens / None
+    step: str = "algorithm1"  # the training-time sampler's solver step ([S-10])
 
 
 def _model(spec: _Spec, leaves, obs, pullback) -> _Encoded:
@@ -131,13 +134,13 @@ def _first(spec: _Spec, leaves, cond, obs, noise):
 
 def _from_row(spec: _Spec, leaves, row, pullback, obs, noise, prior):
     return generate_chunk_from_row(spec.method, _model(spec, leaves, obs, pullback), obs, noise, prior, spec.T,
-                                   row, guided_tokens=_tokens(spec, obs.shape[0]))
+                                   row, guided_tokens=_tokens(spec, obs.shape[0]), step=spec.step)
 
 
 def _gathered(spec: _Spec, leaves, tables, pullback, obs, noise, prior, d):
     return generate_chunk_conditioned(spec.method, _model(spec, leaves, obs, pullback), obs, noise, prior,
                                       spec.s, d, spec.T, tables=tables,
-                                      restrict_guidance=_tokens(spec, obs.shape[0]) is not None)
+                                      restrict_guidance=_tokens(spec, obs.shape[0]) is not None, step=spec.step)
 
 
 def _first_keyed(spec, leaves, cond, obs, key):
@@ -180,6 +183,8 @@ class FastChunks:
         guided_tokens: the guided methods' pull-back ([G-7]): ``"rule"`` (:func:`guided_tokens_for`
             at each call's batch size), None (all tokens) or a token count in [1, H - 1].
         stored_transposes: the guided methods multiply by stored transposed kernels ([P-19]).
+        step: the training-time sampler's solver step, "algorithm1" (default) or "consistent" ([S-10]);
+            naive accepts either, the guided methods only "algorithm1" ([S-14]).
 
     Every argument is checked here; the calls check what they are given
     (shapes, dtypes, the delay's range when concrete). ``key`` is one typed
@@ -188,10 +193,11 @@ class FastChunks:
     """
 
     def __init__(self, policy: FlowPolicy, method: str, execute_horizon: int, num_steps: int, window=None, *,
-                 weights=None, guided_tokens="rule", stored_transposes: bool = True):
+                 weights=None, guided_tokens="rule", stored_transposes: bool = True, step: str = "algorithm1"):
         if not isinstance(policy, FlowPolicy):
             raise ValueError(f"policy must be a softrtc.jax.policy.FlowPolicy, got {type(policy).__name__}")
         method = v.check_choice("method", method, METHODS)
+        step = check_method_step(method, step)
         H, A = policy.action_chunk_size, policy.action_dim
         s = v.check_int("execute_horizon", execute_horizon, 1, H)
         T = v.check_int("num_steps", num_steps, 1, MAX_STEPS)
@@ -200,9 +206,9 @@ class FastChunks:
         v.check_bool("stored_transposes", stored_transposes)
         graphdef, state = nnx.split(policy)
         leaves, treedef = jax.tree.flatten(state)
-        self.method, self.H, self.A, self.s, self.T = method, H, A, s, T
+        self.method, self.H, self.A, self.s, self.T, self.step = method, H, A, s, T, step
         self.max_delay = min(s, H - s)
-        self._spec = _Spec(graphdef, treedef, method, H, A, s, T, guided_tokens)
+        self._spec = _Spec(graphdef, treedef, method, H, A, s, T, guided_tokens, step)
         self._leaves = tuple(leaves)
         if weights is None:
             tables = method_tables(method, policy, H, s, T, window)

@@ -13,7 +13,9 @@ scalar, or one delay per example ``[B]``) and the window's rule parameters
 may be traced, so one compiled ``generate_chunk`` serves every delay.
 Traced delays must satisfy [X-1] ``0 <= d <= min(s, H - s)``; concrete ones
 are checked. For the first chunk (``prior=None``) every method is the naive
-sampler with d = 0 ([X-2]).
+sampler with d = 0 ([X-2]). ``step`` ([S-10]) selects the training-time
+sampler's solver step; naive accepts either, the guided methods only
+"algorithm1" ([S-14]).
 """
 
 from __future__ import annotations
@@ -139,7 +141,7 @@ def _check_first(prior, d):
 
 
 def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_steps: int,
-                   window=None, *, unroll: bool = True) -> jax.Array:
+                   window=None, *, unroll: bool = True, step: str = "algorithm1") -> jax.Array:
     """One batch of chunks by ``method`` ([S-6]) on the straightforward path.
 
     Batch conventions of :mod:`softrtc.jax.sampler` (obs [B, O], noise and
@@ -147,6 +149,7 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     first chunk: naive sampler, d must be 0 ([X-2]).
     """
     H, s, dd, window = _check_request(method, noise, prior, s, d, window)
+    step = _ref.check_method_step(method, step)
     unroll = check_unroll(unroll)
     _check_fn("velocity_fn", velocity_fn)
     naive = prior is None or method == "naive"
@@ -157,7 +160,7 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, num_s
     w = _weights(method, H, s, dd, window)
     if method.startswith("inference_"):
         return _guided_plain(velocity_fn, obs, x, y, w, T, _BETA, unroll)
-    return _rtc(velocity_fn, obs, x, y, w, T, unroll)
+    return _rtc(velocity_fn, obs, x, y, w, T, unroll, step)
 
 
 def method_tables(method: str, model, H: int, s: int, num_steps: int, window=None) -> dict:
@@ -228,7 +231,8 @@ def delay_rows(method: str, tables: dict) -> tuple:
 
 
 def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: int, row: dict, *,
-                            guided_tokens: int | None = None, unroll: bool = True) -> jax.Array:
+                            guided_tokens: int | None = None, unroll: bool = True,
+                            step: str = "algorithm1") -> jax.Array:
     """One chunk by ``method`` from a per-delay row of :func:`delay_rows` ([S-6]).
 
     ``prior`` None means the first chunk: naive sampling, for which the row's
@@ -246,6 +250,7 @@ def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: in
     "paper" parametrization, has w_0 = 1 at d = 0 too), so it is not checked.
     """
     v.check_choice("method", method, METHODS)
+    step = _ref.check_method_step(method, step)
     if not isinstance(row, dict) or set(row) != {"weights", "cond"}:
         raise ValueError("row must be an entry of delay_rows(...) (keys 'weights', 'cond')")
     _check_model(model)
@@ -267,12 +272,12 @@ def generate_chunk_from_row(method: str, model, obs, noise, prior, num_steps: in
         return _naive_conditioned(model, obs, x, T, cond, unroll)
     if method.startswith("inference_"):
         return _guided_conditioned(model, obs, x, y, w, T, _BETA, row["cond"], head, unroll)
-    return _rtc_conditioned(model, obs, x, y, w, T, row["cond"], unroll)
+    return _rtc_conditioned(model, obs, x, y, w, T, row["cond"], unroll, step)
 
 
 def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d, num_steps: int,
                                window=None, *, tables: dict | None = None, restrict_guidance: bool = False,
-                               unroll: bool = True) -> jax.Array:
+                               unroll: bool = True, step: str = "algorithm1") -> jax.Array:
     """:func:`generate_chunk` on the fast path of ``model.apply_conditioned`` ([S-6]).
 
     ``model`` provides ``time_conditioning`` / ``apply_conditioned`` (the flow
@@ -285,6 +290,7 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
     ``model.apply_conditioned_split``); chunks agree within float32 rounding.
     """
     H, s, dd, window = _check_request(method, noise, prior, s, d, window)
+    step = _ref.check_method_step(method, step)
     if not isinstance(restrict_guidance, bool):
         raise ValueError(f"restrict_guidance must be a bool, got {restrict_guidance!r}")
     unroll = check_unroll(unroll)
@@ -310,4 +316,4 @@ def generate_chunk_conditioned(method: str, model, obs, noise, prior, s: int, d,
             # [G-1] weights vanish from H - s on; given tables' weights are checked for it.
             head = _check_guided_tokens(model, H - s, None if tables is None else w, H)
         return _guided_conditioned(model, obs, x, y, w, T, _BETA, cond, head, unroll)
-    return _rtc_conditioned(model, obs, x, y, w, T, cond, unroll)
+    return _rtc_conditioned(model, obs, x, y, w, T, cond, unroll, step)

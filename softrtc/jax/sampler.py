@@ -23,6 +23,10 @@ Two paths compute the same chunks:
   and batch element. A per-delay table (:func:`conditioning_table`) goes
   further: it is built once for every d = 0 .. H and indexed by a traced d.
 
+Both training-time samplers take ``step`` ([S-10]): ``"algorithm1"`` (the
+paper's, default) or ``"consistent"`` (window tokens blended once and moved by
+(1 - w) v / T); for weights in {0, 1} the two are bitwise equal ([S-11]).
+
 The loop over the static T is unrolled by default (faster on CPU for the
 small T of RTC, e.g. T = 5); ``unroll=False`` uses ``lax.fori_loop``, whose
 compile time does not grow with T.
@@ -33,6 +37,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from softrtc.reference.sampler import STEPS, check_step  # noqa: F401  ([S-10], re-exported)
 
 from . import _validate as v
 
@@ -157,6 +163,25 @@ def _check_model_h(name: str, w, model) -> None:
                          f"got {list(w.shape)}")
 
 
+def _stepper(wb, T: int, step: str):
+    """The training-time step for weights ``wb`` [B, H] ([S-4], [S-10]): ``advance(k, x, y, v_of) -> x^{k+1}``
+    with ``v_of(xb)`` the field at the blended state. ``step`` and T are static, the weights may be traced."""
+    wx = wb[..., None]
+    if step == "algorithm1":
+        def advance(k, x, y, v_of):
+            xb = wx * y + (1.0 - wx) * x  # [S-3]
+            return xb + v_of(xb) / T  # [S-4]
+        return advance
+    c = jnp.where(wx < 1.0, 1.0 - wx, 1.0)  # [S-10] c = 1 - w; [S-11] c = 1 at w = 1
+    again = (wx == 0.0) | (wx == 1.0)  # [S-10] window tokens are blended at k = 0 only
+
+    def advance(k, x, y, v_of):
+        xb = wx * y + (1.0 - wx) * x  # [S-3]
+        xb = jnp.where(jnp.logical_or(k == 0, again), xb, x)
+        return xb + (c * v_of(xb)) / T  # [S-10]; c = 1 gives v / T bit for bit ([S-11])
+    return advance
+
+
 def _loop(step, x, T, unroll):
     """x <- step(k, x) for k = 0 .. T-1; Python-unrolled or a fori_loop."""
     if unroll:
@@ -252,30 +277,33 @@ def _naive(velocity_fn, obs, x, T: int, unroll: bool) -> jax.Array:
     return _loop(step, x, T, unroll)
 
 
-def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unroll: bool = True) -> jax.Array:
-    """Training-time RTC sampler (Algorithm 1, [S-3], [S-4], [S-5]); returns x^T without a final blend.
+def rtc_sample(velocity_fn, obs, noise, prior, weights, num_steps: int, *, unroll: bool = True,
+               step: str = "algorithm1") -> jax.Array:
+    """Training-time RTC sampler ([S-3], [S-4], [S-5]); returns x^T without a final blend.
 
-    With w = 0 (e.g. d = 0) it is bitwise :func:`naive_sample` ([S-7]).
+    ``step``: "algorithm1" (the paper's, default) or "consistent" ([S-10]).
+    With w = 0 (e.g. d = 0) it is bitwise :func:`naive_sample` under either step ([S-7], [S-11]).
     """
+    step = check_step(step)
     _check_fn("velocity_fn", velocity_fn)
     require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
     require("weights", weights, "an array [H] or [B, H] in [0, 1]")
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=velocity_fn)
-    return _rtc(velocity_fn, obs, x, y, w, T, check_unroll(unroll))
+    return _rtc(velocity_fn, obs, x, y, w, T, check_unroll(unroll), step)
 
 
-def _rtc(velocity_fn, obs, x, y, w, T: int, unroll: bool) -> jax.Array:
-    """[S-3], [S-4] Euler steps from the blend x~ = w y + (1 - w) x at times t~ = w + (1 - w) t_k, on
-    checked arguments (``x`` the noise, ``y`` the prior, ``w`` weights [H] or [B, H])."""
+def _rtc(velocity_fn, obs, x, y, w, T: int, unroll: bool, step: str = "algorithm1") -> jax.Array:
+    """[S-3], [S-4] ([S-10] for ``step`` "consistent") Euler steps from the blend x~ = w y + (1 - w) x at
+    times t~ = w + (1 - w) t_k, on checked arguments (``x`` the noise, ``y`` the prior, ``w`` weights [H]
+    or [B, H], ``step`` a checked name)."""
     times, wb = _runtime(_times(T), jnp.broadcast_to(w, x.shape[:2]))
-    wx = wb[..., None]
+    advance = _stepper(wb, T, step)
 
-    def step(k, x):
-        xb = wx * y + (1.0 - wx) * x
+    def body(k, x):
         tb = wb + (1.0 - wb) * times[k]
-        return xb + field_output("velocity_fn", velocity_fn(obs, xb, tb), x) / T
+        return advance(k, x, y, lambda xb: field_output("velocity_fn", velocity_fn(obs, xb, tb), x))
 
-    return _loop(step, x, T, unroll)
+    return _loop(body, x, T, unroll)
 
 
 # ----------------------------------------------------------------------- conditioned fast path
@@ -395,8 +423,8 @@ def _naive_conditioned(model, obs, x, T: int, cond, unroll: bool) -> jax.Array:
 
 
 def rtc_sample_conditioned(model, obs, noise, prior, weights, num_steps: int, *, cond=None,
-                           unroll: bool = True) -> jax.Array:
-    """:func:`rtc_sample` through ``model.apply_conditioned`` ([S-3]..[S-5]).
+                           unroll: bool = True, step: str = "algorithm1") -> jax.Array:
+    """:func:`rtc_sample` through ``model.apply_conditioned`` ([S-3]..[S-5]; ``step`` [S-10]).
 
     ``cond`` (optional) is the conditioning of these weights' blended times:
     :func:`rtc_conditioning` or a :func:`select_conditioning` row of a
@@ -404,23 +432,25 @@ def rtc_sample_conditioned(model, obs, noise, prior, weights, num_steps: int, *,
     guarantees that ``cond`` belongs to ``weights``.
     """
     _check_model(model)
+    step = check_step(step)
     require("prior", prior, "an array [B, H, A] (the previous chunk in this chunk's frame, [X-3])")
     require("weights", weights, "an array [H] or [B, H] in [0, 1]")
     obs, x, y, w, T = check_batch(obs, noise, prior, weights, num_steps, model=model)
     unroll = check_unroll(unroll)
     if cond is not None:
         check_leading("cond", cond, (T,))
-    return _rtc_conditioned(model, obs, x, y, w, T, cond, unroll)
+    return _rtc_conditioned(model, obs, x, y, w, T, cond, unroll, step)
 
 
-def _rtc_conditioned(model, obs, x, y, w, T: int, cond, unroll: bool) -> jax.Array:
-    """[S-3]..[S-5] the RTC sampler through ``model.apply_conditioned`` on checked arguments; ``cond`` the
-    checked conditioning of ``w``'s blended times [T, ...], or None to compute it here."""
+def _rtc_conditioned(model, obs, x, y, w, T: int, cond, unroll: bool, step: str = "algorithm1") -> jax.Array:
+    """[S-3]..[S-5] ([S-10] for ``step`` "consistent") the RTC sampler through ``model.apply_conditioned`` on
+    checked arguments; ``cond`` the checked conditioning of ``w``'s blended times [T, ...], or None to
+    compute it here."""
     cond = _rtc_cond(model, w, T) if cond is None else cond
-    wx = jnp.broadcast_to(w, x.shape[:2])[..., None]
+    advance = _stepper(jnp.broadcast_to(w, x.shape[:2]), T, step)
 
-    def step(k, x):
-        xb = wx * y + (1.0 - wx) * x
-        return xb + field_output("model.apply_conditioned", model.apply_conditioned(obs, xb, _at(cond, k)), x) / T
+    def body(k, x):
+        return advance(k, x, y, lambda xb: field_output("model.apply_conditioned",
+                                                        model.apply_conditioned(obs, xb, _at(cond, k)), x))
 
-    return _loop(step, x, T, unroll)
+    return _loop(body, x, T, unroll)
