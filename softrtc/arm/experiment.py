@@ -403,8 +403,16 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
         bad = [r for r in rows if r not in names]
         if bad:
             raise ValueError(f"rows must be among {names}, got {bad}")
-    if delays is not None and any(not 0 <= d <= task.max_delay for d in delays):
+    if delays is not None and any(isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= task.max_delay
+                                  for d in delays):
         raise ValueError(f"delays must be integers in [0, {task.max_delay}], got {delays}")
+    # [AX-4] Fine-tuning seeds are 1-based and bounded by the budget: a seed outside would select no fine-tune
+    # and leave its rows out of the run without notice.
+    n_seeds = max(budget.main_seeds, budget.sweep_seeds)
+    if seeds is not None and any(isinstance(sd, bool) or not isinstance(sd, int) or not 1 <= sd <= n_seeds
+                                 for sd in seeds):
+        raise ValueError(f"seeds must be integers in [1, {n_seeds}] (the {budget_name} budget's fine-tuning "
+                         f"seeds), got {seeds}")
     bad_tiers = [t for t in tiers if t not in ("main", "sweep")]
     if bad_tiers:
         raise ValueError(f"tiers must be among ('main', 'sweep'), got {bad_tiers}")

@@ -31,9 +31,13 @@ def add_experiment_parsers(sub) -> None:
     ex.add_argument("--rows", type=comma_list("row"), default=None, help="only these rows (comma-separated)")
     ex.add_argument("--tiers", type=comma_list("tier", _tier), default=["main", "sweep"],
                     help="main and/or sweep (default both)")
-    ex.add_argument("--delays", type=comma_list("delay", int), default=None, help="only these delays")
-    ex.add_argument("--seeds", type=comma_list("seed", int), default=None,
-                    help="only these fine-tuning seeds (1-based)")
+    # ASCII digits only ([N-11]): int() would read '١' as 1. The task's own range is checked by run_experiment
+    # before any work; here the bound is the largest delay of any task.
+    max_delay = max(t.max_delay for t in TASKS.values())
+    ex.add_argument("--delays", type=comma_list("delay", int_in("each delay", 0, max_delay)), default=None,
+                    help="only these delays")
+    ex.add_argument("--seeds", type=comma_list("seed", int_in("each seed", 1, 2**31 - 1)), default=None,
+                    help="only these fine-tuning seeds (1-based, at most the budget's number of seeds)")
     ex.add_argument("--episodes", type=int_in("value", 1, 100000), default=None,
                     help="at most this many episodes per cell (a later run with more extends the cells)")
     ex.add_argument("--workers", type=int_in("value", 1, 64), default=2, help="episode worker processes (default 2)")

@@ -383,7 +383,10 @@ class Protocol:
         v.integer("episodes", self.episodes, 1, 100000)
         v.integer("seed0", self.seed0, 0, 2**31 - 1 - self.episodes)
         if self.max_steps is not None:
-            v.integer("max_steps", self.max_steps, 1, 10**6)
+            from softrtc.arm.geometry import ArmConfig  # the arm extra; only a given limit needs it
+
+            # The executor runs at most the scene's own episode length: a larger limit fails there, after training.
+            v.integer("max_steps", self.max_steps, 1, ArmConfig().max_steps)
         v.integer("bootstrap_seed", self.bootstrap_seed, 0, 2**31 - 1)
 
 
@@ -396,8 +399,8 @@ def run_experiment(out, work, recipe: TrainRecipe = TrainRecipe(), protocol: Pro
         raise ValueError(f"protocol must be a Protocol, got {type(protocol).__name__}")
     if not isinstance(out, (str, os.PathLike)) or not os.fspath(out).endswith(".json"):
         raise ValueError(f"out must be a path ending in .json, got {out!r}")
+    work = check_out_dir("work", work)  # '' would put the policies in the current folder
     t0 = time.perf_counter()
-    work = Path(work)
     trained = None
     files = [work / f for f in ("base.pt", "train_hard.pt", "train_soft.pt")]
     # policies trained with another network (an earlier ARM_POLICY) are trained again

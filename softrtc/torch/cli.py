@@ -6,7 +6,7 @@ import argparse
 import importlib.util
 import sys
 
-from softrtc._cli_util import command_error, comma_list, int_in, output_file
+from softrtc._cli_util import command_error, comma_list, int_in, output_dir, output_file
 
 HINT = "needs the 'torch' extra (missing module torch): pip install 'softrtc[torch]'"
 
@@ -61,7 +61,8 @@ def add_subparsers(subparsers) -> None:
     a = arm.add_parser("torch", help="train the PyTorch arm policies with the JAX recipe and evaluate them beside "
                                      "the shipped JAX policies in the simulated-delay executor ([PT-9])")
     a.add_argument("--out", type=output_file(), default="results/torch/arm.json", help="result JSON")
-    a.add_argument("--work", default="arm_torch_work", help="folder of the trained policies (default arm_torch_work)")
+    a.add_argument("--work", type=output_dir(), default="arm_torch_work",
+                   help="folder of the trained policies (default arm_torch_work)")
     a.add_argument("--retrain", action="store_true", help="train even when --work holds the three policies")
     a.add_argument("--demos", default=None, help="an existing generate_demos file made with the recipe's arguments")
     a.add_argument("--episodes", type=int_in("value", 1, 100000), default=400, help="demo episodes (default 400)")
@@ -74,7 +75,10 @@ def add_subparsers(subparsers) -> None:
                    help="paired episodes per delay (default 20)")
     a.add_argument("--seed0", type=int_in("value", 0, 2**31 - 100001), default=10_000,
                    help="first evaluation env seed (default 10000)")
-    a.add_argument("--max-steps", type=int_in("value", 1, 10**6), default=None, help="episode step limit")
+    # an episode is at most the scene's 1000 ticks (ArmConfig.max_steps): a larger limit is refused here,
+    # before any training, not by the executor afterwards.
+    a.add_argument("--max-steps", type=int_in("value", 1, 1000), default=None,
+                   help="episode step limit, at most 1000 (the scene's episode length)")
     a.add_argument("--threads", type=int_in("value", 1, 1024), default=1, help="torch threads (default 1)")
     a.add_argument("--table", metavar="RESULT_JSON", default=None,
                    help="print the table of a result file and exit (no training or evaluation)")

@@ -235,3 +235,29 @@ def test_arm_loader_refuses_appended_bytes(tmp_path):
         load_arm_checkpoint(tmp_path / "base.npz")
     with pytest.raises(ValueError, match=r"base\.npz.*1 bytes after"):
         load_policies(tmp_path, ["naive"])
+
+
+@pytest.mark.parametrize("option, message", [
+    (["--delays", "\u0661"], "argument --delays: each delay must be an integer in [0, 5], got '\u0661'"),
+    (["--delays", "\uff11"], "argument --delays: each delay must be an integer in [0, 5], got '\uff11'"),
+    (["--delays", "6"], "argument --delays: each delay must be an integer in [0, 5], got 6"),
+    (["--task", "overlap4", "--delays", "5"], "delays must be integers in [0, 4], got [5]"),
+    (["--seeds", "0"], "argument --seeds: each seed must be an integer in [1, 2147483647], got 0"),
+    (["--seeds", "99999999999"], "argument --seeds: each seed must be an integer in [1, 2147483647], got 99999999999"),
+    (["--seeds", "4"], "seeds must be integers in [1, 3] (the full budget's fine-tuning seeds), got [4]"),
+    (["--quick", "--seeds", "1,2"], "seeds must be integers in [1, 1] (the quick budget's fine-tuning seeds), "
+                                    "got [1, 2]"),
+])
+def test_experiment_delays_and_seeds_are_checked_at_the_door(option, message, tmp_path, capsys):
+    """[AX-4] [N-11] `arm experiment` takes ASCII delays of the task's range and 1-based seeds of the budget;
+    anything else ends with one error line and status 2 before any folder is made or anything is computed."""
+    from softrtc.cli import main
+
+    argv = ["arm", "experiment", "--out", str(tmp_path / "out"), "--work", str(tmp_path / "work")] + option
+    try:
+        rc = main(argv)
+    except SystemExit as exc:
+        rc = exc.code
+    assert rc == 2
+    assert capsys.readouterr().err.splitlines()[-1] == f"softrtc arm experiment: error: {message}"
+    assert list(tmp_path.iterdir()) == []

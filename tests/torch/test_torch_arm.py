@@ -117,3 +117,26 @@ def test_saved_policies_record_their_network(tmp_path):
     assert arm._trained_with(tmp_path / "old.pt")["architecture"] == "token_input"
     with pytest.raises(ValueError, match="retrain"):
         arm._load(tmp_path / "old.pt")
+
+
+@pytest.mark.parametrize("option, message", [
+    (["--work="], "argument --work: must be a directory path, got an empty string"),
+    (["--max-steps", "1001"], "argument --max-steps: value must be an integer in [1, 1000], got 1001"),
+])
+def test_arm_torch_options_are_checked_before_training(option, message, tmp_path, capsys, monkeypatch):
+    """[PT-9] [N-11] `arm torch --work ''` (the current folder) and a step limit past the scene's 1000 ticks
+    end at the door with one line; the library refuses them too, before anything is trained."""
+    from softrtc.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(arm, "train_arm_policies", lambda *a, **k: pytest.fail("trained before the check"))
+    try:
+        rc = main(["arm", "torch", "--out", str(tmp_path / "a.json")] + option)
+    except SystemExit as exc:
+        rc = exc.code
+    assert rc == 2 and capsys.readouterr().err.splitlines()[-1] == f"softrtc arm torch: error: {message}"
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match=r"^max_steps must be an integer in \[1, 1000\], got 1001$"):
+        arm.Protocol(max_steps=1001)
+    with pytest.raises(ValueError, match="^work must be a non-empty"):
+        arm.run_experiment(tmp_path / "a.json", "")
