@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-__all__ = ["cluster_bootstrap", "paired_difference", "mcnemar_exact", "as_matrix"]
+__all__ = ["cluster_bootstrap", "paired_difference", "mcnemar_exact", "sign_flip_test", "holm", "as_matrix"]
 
 
 def as_matrix(name: str, values) -> np.ndarray:
@@ -135,3 +135,86 @@ def mcnemar_exact(a, b) -> dict:
     k = min(b10, b01)
     tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n
     return {"b10": b10, "b01": b01, "p": float(min(1.0, 2.0 * tail))}
+
+
+# Exact enumeration of the 2^E sign patterns up to this many env seeds; Monte Carlo above.
+EXACT_SIGN_FLIP = 16
+
+
+def sign_flip_test(a, b, num_resamples: int = 10_000, seed: int = 0) -> dict:
+    """Paired sign-flip permutation test of ``a`` vs ``b`` with the environment seed as the unit ([AX-7]).
+
+    ``a`` and ``b`` are ``[seeds, episodes]`` as in :func:`paired_difference`
+    (a one-row matrix pairs with every row). Episodes of one column share an
+    environment seed, so they are not independent across fine-tuning seeds:
+    each column is reduced to one difference ``delta_e``, the mean of ``a - b``
+    over its defined pairs, and only columns are exchanged. Under the null
+    hypothesis (the two methods are exchangeable on every environment seed)
+    each ``delta_e`` is as likely to have either sign, so the statistic
+    ``mean_e delta_e`` is compared with its values under every sign pattern
+    (exactly when at most 16 columns, else ``num_resamples`` random patterns
+    with the ``(1 + hits) / (1 + resamples)`` estimate). Returns ``{"diff",
+    "p", "n_env"}``; ``p`` is two-sided and 1 when every ``delta_e`` is 0.
+
+    >>> sign_flip_test([[1, 1, 1]], [[0, 0, 0]])["p"]   # 3 env seeds: 2 of 8 patterns are as extreme
+    0.25
+    """
+    a, b = as_matrix("a", a), as_matrix("b", b)
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"a and b must have the same number of episodes, got {a.shape[1]} and {b.shape[1]}")
+    if a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0]):
+        raise ValueError(f"a and b must have the same number of seeds or one of them one, got {a.shape[0]} and "
+                         f"{b.shape[0]}")
+    _check_resamples(num_resamples, seed)
+    S = max(a.shape[0], b.shape[0])
+    d = np.broadcast_to(a, (S, a.shape[1])) - np.broadcast_to(b, (S, b.shape[1]))
+    ok = np.isfinite(d)
+    keep = ok.any(axis=0)
+    if not keep.any():
+        return {"diff": float("nan"), "p": float("nan"), "n_env": 0}
+    delta = np.where(ok, d, 0.0).sum(axis=0)[keep] / ok.sum(axis=0)[keep]
+    E = delta.size
+    stat = abs(float(delta.mean()))
+    if not np.any(delta != 0):
+        return {"diff": 0.0, "p": 1.0, "n_env": E}
+    # Compare with a tolerance so that patterns equal to the observed one in exact arithmetic count as hits.
+    tol = 1e-12 * max(1.0, float(np.abs(delta).sum()))
+    if E <= EXACT_SIGN_FLIP:
+        signs = 1.0 - 2.0 * ((np.arange(2 ** E)[:, None] >> np.arange(E)[None, :]) & 1)
+        p = float(np.mean(np.abs(signs @ delta) / E >= stat - tol))
+    else:
+        rng = np.random.default_rng(seed)
+        hits = 0
+        for b0 in range(0, num_resamples, 1000):
+            n = min(1000, num_resamples - b0)
+            signs = rng.choice((-1.0, 1.0), size=(n, E))
+            hits += int(np.sum(np.abs(signs @ delta) / E >= stat - tol))
+        p = (1 + hits) / (1 + num_resamples)
+    return {"diff": float(delta.mean()), "p": float(min(1.0, p)), "n_env": int(E)}
+
+
+def holm(pvalues) -> list:
+    """Holm's step-down adjustment of a family of p-values (NaN entries are left out of the family).
+
+    The i-th smallest of m p-values becomes ``max_{k <= i} min(1, (m - k + 1) p_(k))``;
+    rejecting where the adjusted value is below alpha keeps the family-wise
+    error at most alpha ([AX-7]).
+
+    >>> holm([0.01, 0.04, 0.03])
+    [0.03, 0.06, 0.06]
+    """
+    try:
+        p = np.asarray(pvalues, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError("pvalues must be a list of reals in [0, 1] (NaN allowed)") from None
+    if p.ndim != 1 or np.any(np.isinf(p)) or np.any((p[np.isfinite(p)] < 0) | (p[np.isfinite(p)] > 1)):
+        raise ValueError("pvalues must be a list of reals in [0, 1] (NaN allowed)")
+    out = np.full(p.shape, np.nan)
+    idx = np.flatnonzero(np.isfinite(p))
+    m = idx.size
+    order = idx[np.argsort(p[idx], kind="stable")]
+    running = 0.0
+    for k, i in enumerate(order):
+        running = max(running, min(1.0, (m - k) * p[i]))
+        out[i] = running
+    return [float(round(x, 15)) if np.isfinite(x) else float("nan") for x in out]

@@ -15,12 +15,18 @@ from pathlib import Path
 import numpy as np
 
 from .experiment import H, read_episodes
-from .paired_stats import cluster_bootstrap, mcnemar_exact, paired_difference
+from .paired_stats import cluster_bootstrap, paired_difference, sign_flip_test
 
 __all__ = ["load_results", "summarize", "METRICS", "RESAMPLES"]
 
-METRICS = ("success", "completion", "D1", "D2", "D3", "boundary", "mean_abs_action")
+METRICS = ("success", "completion", "D1", "D2", "D3", "boundary", "mean_abs_action", "D2_success", "D2_failure")
 RESAMPLES = 2000
+# Sign patterns drawn per sign-flip test ([AX-7]); 5000 resolve p down to 2e-4, below Holm's smallest threshold
+# for the report's per-delay families.
+PERMUTATIONS = 5000
+# Derived metrics: D2 of the successful and of the failed episodes only (NaN for the others), so the jerk of a
+# row is not confounded with how often it fails ([AX-7]).
+_SPLIT = {"D2_success": ("D2", 1.0), "D2_failure": ("D2", 0.0)}
 
 
 def load_results(folder) -> dict:
@@ -71,7 +77,11 @@ def _matrix(res, row, delays, metric, seeds=None):
         parts = []
         for d in delays:
             eps = sorted(res["cells"][(row, s, d)], key=lambda e: e["episode"])[:n]
-            parts.append([float(e[metric]) for e in eps])
+            if metric in _SPLIT:
+                base, want = _SPLIT[metric]
+                parts.append([float(e[base]) if float(e["success"]) == want else float("nan") for e in eps])
+            else:
+                parts.append([float(e[metric]) for e in eps])
         mats.append(np.concatenate(parts))
     return np.stack(mats)
 
@@ -85,8 +95,10 @@ def summarize(res) -> dict:
 
     Each value is ``{"mean", "lo", "hi", "n"}`` (bootstrap over seeds and
     episodes); each row also has ``seeds`` and ``episodes`` (per delay), and
-    ``vs_hard``: paired tests against ``train_hard`` where both ran (McNemar
-    for success, paired bootstrap for the rest).
+    ``vs_hard``: paired tests against ``train_hard`` where both ran: the
+    paired bootstrap interval of the difference, and ``p_perm``, the
+    sign-flip test with the environment seed as the unit (episodes of one env
+    seed are not independent across fine-tuning seeds, [AX-7]).
     """
     max_d = res["manifest"]["execute_horizon"]
     max_d = min(max_d, H - max_d)
@@ -127,8 +139,7 @@ def summarize(res) -> dict:
                             (a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0])):
                         continue
                     tests[m] = paired_difference(a, b, RESAMPLES, 0)
-                    if m == "success":
-                        tests["mcnemar"] = mcnemar_exact(a, b)
+                    tests[m]["p_perm"] = sign_flip_test(a, b, PERMUTATIONS, 0)["p"]
                 entry["vs_hard"][scope] = tests
         out[row] = done[shared] = entry
     return out

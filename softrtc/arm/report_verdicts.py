@@ -106,7 +106,8 @@ def verdicts(summary, manifest) -> list:
     same = rows.get("soft1_clip", {}).get("eval_key") == rows.get("train_hard", {}).get("eval_key") and \
         rows.get("soft1_zeros", {}).get("eval_key") == rows.get("train_hard", {}).get("eval_key")
     out.append({"claim": "Soft N = 1 nearly matches Hard RTC in success.",
-                "verdict": "supported" if same else "inconclusive",
+                # Equal by construction is not evidence for the claim: the verdict says so instead of "supported".
+                "verdict": "identical by construction" if same else "inconclusive",
                 "evidence": ("`lam = 1` gives `e(d) = d` under the ceiling rule: its training weights, fine-tunes and "
                              "sampler are those of Train Hard RTC (same files in this experiment), so it matches Hard "
                              "exactly; any difference between the two in a paper table comes from separate training "

@@ -209,3 +209,47 @@ def test_report_says_what_a_larger_budget_would_add_and_checks_the_readme_task(t
     (tmp_path / "easy" / "manifest.json").write_text("{}")
     with pytest.raises(ValueError, match=r"readme_task must be one of the result tasks \['easy'\], got 'drift'"):
         write_report(tmp_path, readme=tmp_path / "README.md", readme_task="drift")
+
+
+def test_sign_flip_test_hand_values():
+    """AX-7: the env seed is the unit: 3 columns all +1 give 2 of 8 sign patterns as extreme (p = 1/4); the
+    columns of 3 fine-tuning seeds are averaged first, so 300 episodes over 3 env seeds still give 8 patterns."""
+    r = ps.sign_flip_test(np.array([[1, 1, 1]]), np.array([[0, 0, 0]]))
+    assert r["p"] == 0.25 and r["diff"] == 1.0 and r["n_env"] == 3
+    a = np.array([[1, 1, 1], [1, 1, 1], [1, 1, 0]])
+    b = np.array([[0, 0, 0]])  # a base row, paired with every seed row
+    r = ps.sign_flip_test(a, b)
+    # column means of a - b: 1, 1, 2/3 -> mean 8/9; only the all-plus and all-minus patterns reach |8/9|.
+    assert abs(r["diff"] - 8 / 9) < 1e-12 and r["p"] == 0.25
+    # One column of differences {+1, -1} averages to 0: that env seed carries no evidence.
+    r = ps.sign_flip_test(np.array([[1, 0, 1], [0, 0, 1]]), np.array([[0, 0, 0], [1, 0, 0]]))
+    assert r["n_env"] == 3 and abs(r["diff"] - 1 / 3) < 1e-12
+    # 2 patterns of 8 reach |mean| = 1/3 with deltas (0, 0, 1): + and - on the third column, any sign on zeros:
+    # |(0 + 0 +- 1)| / 3 = 1/3 for all 8 patterns -> p = 1.
+    assert r["p"] == 1.0
+    assert ps.sign_flip_test(np.array([[1, 0]]), np.array([[1, 0]]))["p"] == 1.0
+
+
+def test_sign_flip_test_monte_carlo_matches_binomial():
+    """AX-7: above 16 env seeds the test draws patterns; with deltas all +1 (E = 20) the exact p is 2 / 2^20,
+    so the Monte Carlo estimate is its floor 1 / (1 + resamples); with 14 of 20 at +1 and 6 at -1 the exact
+    two-sided p is P(|2K - 20| >= 8), K ~ Bin(20, 1/2)."""
+    import math
+    r = ps.sign_flip_test(np.ones((1, 20)), np.zeros((1, 20)), 4000, 1)
+    assert r["p"] == 1 / 4001
+    a = np.array([[1.0] * 14 + [0.0] * 6])
+    b = np.array([[0.0] * 14 + [1.0] * 6])
+    exact = sum(math.comb(20, k) for k in range(21) if abs(2 * k - 20) >= 8) / 2 ** 20
+    r = ps.sign_flip_test(a, b, 20000, 0)
+    assert abs(r["p"] - exact) < 0.01, (r["p"], exact)
+
+
+def test_holm_hand_values_and_checks():
+    """AX-7: Holm's step-down adjustment, computed by hand; NaN is outside the family."""
+    assert ps.holm([0.01, 0.04, 0.03]) == [0.03, 0.06, 0.06]
+    out = ps.holm([0.2, float("nan"), 0.01])
+    assert out[0] == 0.2 and out[2] == 0.02 and math.isnan(out[1])
+    assert ps.holm([0.6, 0.6]) == [1.0, 1.0]
+    for bad in ([1.5], [-0.1], [float("inf")], "x"):
+        with pytest.raises(ValueError, match="pvalues"):
+            ps.holm(bad)
