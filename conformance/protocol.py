@@ -11,7 +11,10 @@ Messages (one JSON object per line, UTF-8):
                                or {"id": N, "error": {"kind": KIND, "type": ..., "message": ..., "where": ...}}
 
 The child answers requests in the order they arrive; the runner closes the
-child's stdin at the end and the child exits.
+child's stdin at the end and the child exits. The child runs in a process group
+of its own, which is killed whenever the child is stopped ([CF-35]); of its
+stderr only the last STDERR_TAIL bytes are kept ([CF-36]); its address space
+can be limited ([CF-37]).
 """
 
 from __future__ import annotations
@@ -19,17 +22,26 @@ from __future__ import annotations
 import json
 import os
 import queue
+import resource
 import signal
 import subprocess
-import tempfile
 import threading
 import time
+from collections import deque
 
 from .adapter import TIME_CONVENTIONS, AdapterError
 
 PROTOCOL = "softrtc-conformance"
 VERSION = 1
 ERROR_KINDS = ("invalid_input", "unsupported", "exception", "bad_result", "bad_call")
+# Bytes of the child's stderr kept for messages: a failure quotes the last line, and an adapter that prints
+# in a loop must not fill the disk or the runner's memory ([CF-36]).
+STDERR_TAIL = 64 * 1024
+# Seconds a line may still arrive after the child exited: its last replies can be in the pipe, but a
+# grandchild holding the pipe open must not turn an exit into a time-out ([CF-35]).
+EXIT_GRACE = 0.5
+# Seconds between looks at whether the child still runs while waiting for a line.
+POLL = 0.1
 
 
 def hello(name: str, time_convention: str, functions: list) -> dict:
@@ -54,11 +66,60 @@ class ChildLost(Exception):
 _EOF = object()
 
 
-class Child:
-    """One implementation process: started by :meth:`start`, replaced by a fresh one with :meth:`restart`."""
+def parse_line(line: bytes):
+    """One protocol line as a Python value. ValueError for a line that is no JSON, including one nested
+    deeper than Python's parser follows (RecursionError) or too large to parse (MemoryError): whatever the
+    child writes ends in one line, never a traceback ([CF-18], [CF-29])."""
+    try:
+        return json.loads(line)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply to parse") from None
+    except MemoryError:
+        raise ValueError("a line too large to parse") from None
 
-    def __init__(self, argv: list, start_timeout: float, label: str):
+
+class Tail:
+    """The last ``limit`` bytes of a stream ([CF-36]): chunks are appended and the oldest dropped, so the
+    memory held never exceeds ``limit`` plus one chunk, whatever the stream's length."""
+
+    def __init__(self, limit: int = STDERR_TAIL):
+        if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+            raise ValueError(f"limit must be an int >= 1 (bytes), got {limit!r}")
+        self.limit, self._chunks, self._size = limit, deque(), 0
+        self._lock = threading.Lock()
+
+    def add(self, chunk: bytes) -> None:
+        with self._lock:
+            self._chunks.append(bytes(chunk))
+            self._size += len(chunk)
+            while self._size - len(self._chunks[0]) >= self.limit:
+                self._size -= len(self._chunks.popleft())
+
+    def bytes(self) -> bytes:
+        """The kept tail: at most ``limit`` bytes, the stream's last."""
+        with self._lock:
+            return b"".join(self._chunks)[-self.limit:]
+
+
+def _memory_limiter(megabytes: int | None):
+    """A preexec_fn limiting the child's address space to ``megabytes`` MB ([CF-37]); None for no limit.
+    It runs between fork and exec, so it only calls setrlimit (no allocation, no lock)."""
+    if megabytes is None:
+        return None
+    limit = int(megabytes) * 1024 * 1024
+
+    def limit_memory():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    return limit_memory
+
+
+class Child:
+    """One implementation process: started by :meth:`start`, replaced by a fresh one with :meth:`restart`.
+    ``memory_mb``: the limit of its address space in MB ([CF-37]), None for none."""
+
+    def __init__(self, argv: list, start_timeout: float, label: str, memory_mb: int | None = None):
         self.argv, self.start_timeout, self.label = list(argv), float(start_timeout), label
+        self.memory_mb = memory_mb
         self.proc = None
         self._fields: dict = {}
         self.name = self.time_convention = None
@@ -71,14 +132,17 @@ class Child:
 
     def launch(self) -> None:
         """Start the process without waiting for its hello line (the runner reads the vectors meanwhile)."""
-        self._err = tempfile.TemporaryFile()
         try:
-            self.proc = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._err,
-                                         start_new_session=True)
-        except OSError as exc:
+            self.proc = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                         stderr=subprocess.PIPE, start_new_session=True,
+                                         preexec_fn=_memory_limiter(self.memory_mb))
+        except (OSError, subprocess.SubprocessError) as exc:
             raise ImplementationError(f"cannot start the implementation ({self.label}): {exc}") from None
         self._lines: queue.Queue = queue.Queue()
         self._writes: queue.Queue = queue.Queue()
+        self._err = Tail()
+        self._err_reader = threading.Thread(target=self._drain, args=(self.proc.stderr, self._err), daemon=True)
+        self._err_reader.start()
         threading.Thread(target=self._read, args=(self.proc.stdout, self._lines), daemon=True).start()
         threading.Thread(target=self._write, args=(self.proc.stdin, self._writes), daemon=True).start()
         self._launched = time.monotonic()
@@ -98,9 +162,11 @@ class Child:
 
     def _hello(self, line: bytes) -> None:
         try:
-            msg = json.loads(line)
-        except ValueError:
-            msg = None
+            msg = parse_line(line)
+        except ValueError as exc:
+            self.stop()
+            raise ImplementationError(f"the implementation ({self.label}) did not start with a {PROTOCOL} hello "
+                                      f"line; it wrote {line[:40]!r}..., not readable JSON: {exc} ([CF-29])") from None
         if not isinstance(msg, dict) or msg.get("protocol") != PROTOCOL:
             self.stop()
             raise ImplementationError(f"the implementation ({self.label}) did not start with a "
@@ -125,7 +191,8 @@ class Child:
         self.start()
 
     def stop(self) -> None:
-        """End the child: close its stdin, give it a moment to exit, then kill its process group."""
+        """End the child: close its stdin, give it a moment to exit, then kill its process group, whether or
+        not the child itself has exited: processes it started must not outlive the case ([CF-35])."""
         if self.proc is None:
             return
         proc, self.proc = self.proc, None
@@ -134,13 +201,14 @@ class Child:
             proc.wait(timeout=1.0)
         except subprocess.TimeoutExpired:
             pass
+        try:
+            # The group keeps the child's id while any member lives, even after the child was reaped.
+            os.killpg(proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
         if proc.poll() is None:
-            try:
-                os.killpg(proc.pid, signal.SIGKILL)
-            except (ProcessLookupError, PermissionError, AttributeError):
-                proc.kill()
-            proc.wait()
-        self._err.close()
+            proc.kill()
+        proc.wait()
 
     # -- messages
     def submit(self, request: dict) -> None:
@@ -170,28 +238,43 @@ class Child:
             raise ChildLost(f"the implementation's process {self._death()} while running this case; the run "
                             "went on in a fresh one")
         try:
-            msg = json.loads(line)
-        except ValueError:
-            msg = None
+            msg = parse_line(line)
+        except ValueError as exc:
+            msg, why = None, f" ({exc})"
+        else:
+            why = ""
         if not isinstance(msg, dict) or "id" not in msg or ("result" in msg) == ("error" in msg):
-            raise ChildLost(f"protocol error: the child wrote {line[:80]!r}, not a reply ([CF-29])")
+            raise ChildLost(f"protocol error: the child wrote {line[:80]!r}{why}, not a reply ([CF-29])")
         # Values of a reply without JSON booleans may be compared as parsed: Python's True == 1 cannot occur.
         msg["_no_booleans"] = b"true" not in line and b"false" not in line
         return msg
 
     def _next(self, deadline: float):
-        try:
-            return self._lines.get(timeout=max(0.0, deadline - time.monotonic()))
-        except queue.Empty:
-            return None
+        """The next line, _EOF, or None at ``deadline``. A child that exited ends the wait EXIT_GRACE seconds
+        later with _EOF even when a process it started keeps the pipe open ([CF-35])."""
+        exited = None
+        while True:
+            now = time.monotonic()
+            end = deadline if exited is None else min(deadline, exited + EXIT_GRACE)
+            try:
+                return self._lines.get(timeout=max(0.0, min(end - now, POLL)))
+            except queue.Empty:
+                pass
+            now = time.monotonic()
+            if exited is None and self.proc is not None and self.proc.poll() is not None:
+                exited = now
+            elif exited is not None and now >= exited + EXIT_GRACE:
+                return _EOF
+            if now >= deadline:
+                return None
 
     def _death(self) -> str:
         try:
             rc = self.proc.wait(timeout=5.0)
         except subprocess.TimeoutExpired:
             return "closed its output"
-        self._err.seek(0)
-        tail = [ln for ln in self._err.read()[-4000:].decode("utf-8", "replace").splitlines() if ln.strip()]
+        self._err_reader.join(timeout=EXIT_GRACE)  # what the child wrote last, unless a grandchild holds the pipe
+        tail = [ln for ln in self._err.bytes()[-4000:].decode("utf-8", "replace").splitlines() if ln.strip()]
         how = f"exited with status {rc}"
         if rc < 0:
             try:
@@ -199,6 +282,20 @@ class Child:
             except ValueError:
                 how = f"was killed by signal {-rc}"
         return how + (f" (last stderr line: {tail[-1].strip()[:200]})" if tail else "")
+
+    @staticmethod
+    def _drain(stream, tail: Tail) -> None:
+        """Read the child's stderr to its end, keeping the tail ([CF-36])."""
+        try:
+            for chunk in iter(lambda: stream.read1(65536), b""):
+                tail.add(chunk)
+        except (OSError, ValueError):
+            pass
+        finally:
+            try:
+                stream.close()
+            except OSError:
+                pass
 
     @staticmethod
     def _read(stream, lines: queue.Queue) -> None:
@@ -221,3 +318,4 @@ class Child:
             stream.close()
         except OSError:
             pass
+

@@ -2,7 +2,8 @@
 [CF-29]..[CF-31]).
 
     softrtc conformance run --impl NAME_OR_MODULE:ATTR | --impl-cmd "COMMAND" [--in-process]
-                            [--case-timeout S] [--report FILE] [--junit FILE] [--vectors DIR] [--only f1,f2]
+                            [--case-timeout S] [--case-memory-mb MB] [--report FILE] [--junit FILE]
+                            [--vectors DIR] [--only f1,f2]
 
 Every case is one call of one interface function. The implementation runs in a
 child process of its own by default and answers over the protocol of
@@ -26,13 +27,15 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
 from .._cli_util import command_error, comma_list, input_dir, output_file, real_in
 from .._files import write_atomic
 from . import FORMAT_VERSION
-from .adapter import ALTERNATES, INTERFACE, TRACE_TIME_KEYS, TRACE_VEL_KEYS, AdapterError, Fn, load_adapter
-from .invoke import NONFINITE, Invoker, function_of
+from .adapter import ALTERNATES, INTERFACE, AdapterError, load_adapter
+# The comparison lives in compare.py; its names stay importable from here.
+from .compare import (CaseFailure, _decode, _flip_args, _flip_out, _number, _outputs, check_integers,  # noqa: F401
+                      check_outputs, compare)
+from .invoke import NONFINITE, Invoker, function_of  # noqa: F401
 from .protocol import Child, ChildLost, ImplementationError
 from .results import (MAX_LISTED_FAILURES, TRACE_NOT_PROVIDED, UNSUPPORTED_CASE, CaseResult, RunResult,  # noqa: F401
                       format_summary, report_dict, write_junit)
@@ -40,6 +43,11 @@ from .vectors_io import VectorError, load_vectors, parse_json  # noqa: F401  (re
 
 DEFAULT_CASE_TIMEOUT = 60.0
 DEFAULT_START_TIMEOUT = 120.0
+# The child's address space in MB ([CF-37]): generous, since it is virtual memory (JAX's child reserves
+# about 1.2 GB on two cores, and thread stacks and malloc arenas grow with the core count), but finite, so
+# a runaway case fails instead of waking the system's OOM killer.
+DEFAULT_CASE_MEMORY_MB = 16384
+CASE_MEMORY_RANGE = (256, 1 << 20)
 # Requests sent ahead of the replies: the child computes the next cases while this process compares.
 WINDOW = 32
 # A function whose cases lose this many children in a row has its remaining cases failed without running.
@@ -50,157 +58,12 @@ class CaseUnsupported(Exception):
     """The implementation declined the case (NotImplementedError, or "unsupported" over the protocol) ([CF-26])."""
 
 
-class CaseFailure(Exception):
-    """A case failed; the message is one line. ``ratio`` is the worst |got - want| / tolerance when a
-    number was out of tolerance, inf when none could be compared (exact-match mismatch, wrong shape,
-    type or kind of result, exception) ([CF-5], [CF-14])."""
-
-    def __init__(self, message: str, ratio: float = math.inf):
-        super().__init__(message)
-        self.ratio = float(ratio)
-
-
-# ---------------------------------------------------------------- comparing
-
-def _decode(what: str, value) -> np.ndarray:
-    """A reply's value as an array; the protocol's "NaN", "Infinity" and "-Infinity" strings as numbers
-    ([CF-29]), any other string or a ragged list as a failure."""
-    try:
-        a = np.asarray(value)
-    except (TypeError, ValueError):
-        raise CaseFailure(f"{what}: not a rectangular array of numbers") from None
-    if a.dtype.kind == "U":
-        if not np.isin(a, list(NONFINITE)).all():
-            raise CaseFailure(f"{what}: expected numbers, got strings")
-        a = np.vectorize(NONFINITE.get, otypes=[np.float64])(a)
-    elif a.dtype == object:
-        raise CaseFailure(f"{what}: not a numeric array")
-    return a
-
-
-def compare(what: str, got, want, tol: dict, integer: bool = False, exact=None) -> float:
-    """Worst |got - want| / (abs + rel |want|) ([CF-5]); raise CaseFailure when above 1 (or not a number).
-    ``exact``: flat indices of entries that must match exactly ([CF-32])."""
-    if not isinstance(tol, dict) or not {"abs", "rel"} <= set(tol):
-        raise ValueError(f"tol must be a dict with keys 'abs' and 'rel' ([CF-5]), got {tol!r}")
-    w = np.asarray(want, dtype=np.float64)
-    g = _decode(what, got)
-    if g.dtype.kind not in "biuf":
-        raise CaseFailure(f"{what}: expected numbers, got dtype {g.dtype}")
-    if g.dtype.kind == "b" and not integer:
-        raise CaseFailure(f"{what}: expected real numbers, got booleans")
-    g = g.astype(np.float64)
-    if g.shape != w.shape:
-        if g.size == w.size == 1 and w.ndim == 0:
-            g = g.reshape(())
-        else:
-            raise CaseFailure(f"{what}: shape {list(g.shape)}, expected {list(w.shape)}")
-    if not np.all(np.isfinite(g)):
-        bad = np.argwhere(~np.isfinite(g))
-        where = f" at index {bad[0].tolist()}" if g.ndim else ""
-        raise CaseFailure(f"{what}: non-finite value (NaN or inf){where}")
-    if not np.all(np.isfinite(w)):  # the reader refuses such files ([CF-28]); a ratio of NaN must never pass
-        raise CaseFailure(f"{what}: the expected value is not finite")
-    err = np.abs(g - w)
-    bound = np.zeros_like(err) if integer else tol["abs"] + tol["rel"] * np.abs(w)
-    if exact and not integer:
-        bound = np.array(bound, dtype=np.float64)
-        bound.reshape(-1)[np.asarray(exact, dtype=np.int64)] = 0.0
-    ratio = np.where(err == 0, 0.0, np.divide(err, bound, out=np.full_like(err, np.inf), where=bound > 0))
-    worst = float(ratio.max()) if ratio.size else 0.0
-    if not worst <= 1.0:  # NaN fails too
-        i = np.unravel_index(int(np.nanargmax(np.where(np.isnan(ratio), np.inf, ratio))), ratio.shape) \
-            if ratio.ndim else ()
-        idx = f"[{', '.join(map(str, i))}]" if i else ""
-        times = "exact match required" if integer or not math.isfinite(worst) else f"{worst:.3g} x tolerance"
-        raise CaseFailure(f"{what}{idx}: got {_number(g[i], integer)!r}, expected {_number(w[i], integer)!r} "
-                          f"({times})", worst if worst == worst else math.inf)
-    return worst
-
-
-def _number(x, integer: bool):
-    """A plain Python number for messages: an int for integer outputs, else a float (never np.float64(...))."""
-    v = float(x)
-    return int(v) if integer and v.is_integer() else v
-
-
-def check_outputs(fn: Fn, fname: str, got: dict, expected: dict, tol: dict,
-                  plain: bool = False) -> tuple[float, str]:
-    """Worst ratio over every output ([CF-5], [CF-11]). With ``plain`` (values parsed from JSON without
-    booleans) a value equal to the expected one as parsed has ratio 0 without going through NumPy."""
-    worst, note, exact = 0.0, "", tol.get("exact", {})
-    for k in fn.outputs:
-        if k == "trace":
-            if got.get("trace") is None:
-                note = TRACE_NOT_PROVIDED
-                continue
-            tr, want = got["trace"], expected["trace"]
-            if len(tr) != len(want):
-                raise CaseFailure(f"{fname} trace has {len(tr)} steps, expected {len(want)}")
-            for i, (st, ws) in enumerate(zip(tr, want)):
-                missing = [k2 for k2 in ws if k2 not in st]
-                if missing:
-                    raise CaseFailure(f"{fname} trace step {i} lacks keys {missing}")
-                for k2 in sorted(ws):
-                    if not (plain and st[k2] == ws[k2]):
-                        worst = max(worst, compare(f"trace step {i} {k2}", st[k2], ws[k2], tol,
-                                                   exact=exact.get(f"trace/{k2}")))
-            continue
-        if not (plain and got[k] == expected[k]):
-            worst = max(worst, compare(k, got[k], expected[k], tol, k in fn.int_out, exact.get(k)))
-    return worst, note
-
-
-# ---------------------------------------------------------------- mapping between conventions
-
-def _flip_args(fn: Fn, args: dict) -> dict:
-    """Arguments in the flipped convention ([CF-10]): flow times t' = 1 - t, velocities u = -v."""
-    out = dict(args)
-    for k in fn.time_args:
-        v = np.asarray(args[k], dtype=np.float64)
-        out[k] = (1.0 - v).tolist() if v.ndim else 1.0 - float(v)
-    for k in fn.vel_args:
-        out[k] = (-np.asarray(args[k], dtype=np.float64)).tolist()
-    return out
-
-
-def _outputs(fn: Fn, attr: str, result, flipped: bool) -> dict:
-    """A reply's result as {output: array, "trace": [{key: array}] or None} in the spec's convention; in the
-    spec's own convention the values stay as received (compare() decodes them)."""
-    if not isinstance(result, dict):
-        raise CaseFailure(f"{attr} result must be an object with the outputs {list(fn.outputs)}")
-    missing = [k for k in fn.outputs if k not in result]
-    if missing:
-        raise CaseFailure(f"{attr} result lacks keys {missing}")
-    got = {}
-    for k in fn.outputs:
-        v = result[k]
-        if k == "trace":
-            if v is not None and (not isinstance(v, list) or not all(isinstance(st, dict) for st in v)):
-                raise CaseFailure(f"{attr} trace must be a list of per-step dicts or None, got {type(v).__name__}")
-            got[k] = None if v is None or not flipped else [
-                {sk: _flip_out(_decode(f"{attr} trace step {i} key {sk!r}", sv), sk in TRACE_TIME_KEYS,
-                               sk in TRACE_VEL_KEYS, flipped) for sk, sv in st.items()} for i, st in enumerate(v)]
-            if v is not None and not flipped:
-                got[k] = v
-            continue
-        got[k] = _flip_out(_decode(f"{attr} output {k!r}", v), k in fn.time_out, k in fn.vel_out, flipped) \
-            if flipped else v
-    return got
-
-
-def _flip_out(a: np.ndarray, is_time: bool, is_vel: bool, flipped: bool) -> np.ndarray:
-    if flipped and is_time and a.dtype.kind in "iuf":
-        return 1.0 - a
-    if flipped and is_vel and a.dtype.kind in "iuf":
-        return -a
-    return a
-
-
 # ---------------------------------------------------------------- implementations
 
 class InProcess:
     """An adapter object called in this process (``--in-process``): no isolation, no time limit."""
+
+    memory_mb = None  # no limit in process ([CF-37])
 
     def __init__(self, adapter):
         self.invoker = Invoker(adapter)
@@ -254,8 +117,9 @@ def _request(job: _Job, flipped: bool) -> dict:
     return {"id": job.id, "function": attr, "args": _flip_args(fn, args) if flipped else args}
 
 
-def _judge(job: _Job, reply: dict, flipped: bool) -> tuple[float, str]:
-    """Verdict on one reply: (worst ratio, note), or CaseFailure / CaseUnsupported ([CF-18], [CF-26])."""
+def _judge(job: _Job, reply: dict, flipped: bool, memory_mb: int | None = None) -> tuple[float, str]:
+    """Verdict on one reply: (worst ratio, note), or CaseFailure / CaseUnsupported ([CF-18], [CF-26]);
+    a MemoryError under a memory limit says so ([CF-37])."""
     attr, fn = job.forms[0]
     is_error_case = "error" in job.case["expected"]
     if "error" in reply:
@@ -267,6 +131,9 @@ def _judge(job: _Job, reply: dict, flipped: bool) -> tuple[float, str]:
             raise CaseUnsupported(f"{attr} raised {desc}")
         if kind == "invalid_input" and is_error_case:
             return 0.0, ""
+        if kind == "exception" and e.get("type") == "MemoryError" and memory_mb is not None:
+            raise CaseFailure(f"{attr} ran out of memory: the case exceeded the memory limit of {memory_mb} MB "
+                              f"(--case-memory-mb){where}")
         if kind in ("invalid_input", "exception"):
             raise CaseFailure(f"{'invalid input must raise ValueError, ' if is_error_case and kind == 'exception' else ''}"
                               f"{attr} raised {desc}{where}")
@@ -326,7 +193,7 @@ def _run_jobs(impl, jobs: list, case_timeout: float) -> None:
         job.result.seconds += last_event - ready
         lost_in_a_row.pop(job.result.function, None)
         try:
-            job.result.worst, job.result.message = _judge(job, reply, flipped)
+            job.result.worst, job.result.message = _judge(job, reply, flipped, impl.memory_mb)
         except CaseUnsupported as exc:
             job.declined.append(str(exc))
             job.forms.pop(0)
@@ -344,8 +211,17 @@ def _check_timeout(name: str, value) -> float:
     return float(value)
 
 
+def check_memory_mb(name: str, value) -> int:
+    """A memory limit in MB: an int in CASE_MEMORY_RANGE ([CF-37], [N-7])."""
+    lo, hi = CASE_MEMORY_RANGE
+    if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+        raise ValueError(f"{name} must be an integer number of megabytes in [{lo}, {hi}], got {value!r}")
+    return value
+
+
 def run(impl=None, vectors_dir=None, only=None, files=None, *, impl_cmd=None, in_process=None,
-        case_timeout=DEFAULT_CASE_TIMEOUT, start_timeout=DEFAULT_START_TIMEOUT) -> RunResult:
+        case_timeout=DEFAULT_CASE_TIMEOUT, start_timeout=DEFAULT_START_TIMEOUT,
+        case_memory_mb=DEFAULT_CASE_MEMORY_MB) -> RunResult:
     """Run every case against an implementation ([CF-13], [CF-29]).
 
     ``impl``: an adapter spec string (run in a child process through :mod:`.host`, or in this process with
@@ -364,15 +240,17 @@ def run(impl=None, vectors_dir=None, only=None, files=None, *, impl_cmd=None, in
             raise ValueError(f"only names unknown interface functions {unknown}; known: {sorted(INTERFACE)}")
     case_timeout = _check_timeout("case_timeout", case_timeout)
     start_timeout = _check_timeout("start_timeout", start_timeout)
+    case_memory_mb = check_memory_mb("case_memory_mb", case_memory_mb)
     if (impl is None) == (impl_cmd is None):
         raise ValueError("give exactly one of impl (an adapter) and impl_cmd (a command)")
     if impl_cmd is not None:
         if not isinstance(impl_cmd, str) or not shlex.split(impl_cmd) or in_process:
             raise ValueError(f"impl_cmd must be a non-empty command line (never in process), got {impl_cmd!r}")
-        runner_impl, impl_name = Child(shlex.split(impl_cmd), start_timeout, f"command {impl_cmd!r}"), impl_cmd
+        runner_impl, impl_name = Child(shlex.split(impl_cmd), start_timeout, f"command {impl_cmd!r}",
+                                       case_memory_mb), impl_cmd
     elif isinstance(impl, str) and not in_process:
         argv = [sys.executable, "-m", "softrtc.conformance.host", "--impl", impl]
-        runner_impl, impl_name = Child(argv, start_timeout, f"impl {impl!r}"), impl
+        runner_impl, impl_name = Child(argv, start_timeout, f"impl {impl!r}", case_memory_mb), impl
     elif isinstance(impl, str):
         runner_impl, impl_name = InProcess(load_adapter(impl)), impl
     elif in_process is False:
@@ -429,6 +307,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start-timeout", type=real_in("seconds", 0.0, lo_open=True),
                         default=DEFAULT_START_TIMEOUT,
                         help=f"seconds the child may take to write its hello line (default {DEFAULT_START_TIMEOUT:g})")
+    parser.add_argument("--case-memory-mb", type=_memory_mb, default=DEFAULT_CASE_MEMORY_MB, metavar="MB",
+                        help=f"address space of the implementation's child process in MB, "
+                             f"{CASE_MEMORY_RANGE[0]}..{CASE_MEMORY_RANGE[1]}; a case that needs more fails "
+                             f"(default {DEFAULT_CASE_MEMORY_MB}; no limit with --in-process)")
     parser.add_argument("--vectors", type=input_dir(), default=None,
                         help="vector directory (default: the vectors shipped with softrtc)")
     parser.add_argument("--report", type=output_file(), default=None, help="write a JSON report to this file")
@@ -436,6 +318,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--only", type=comma_list("value", _interface_function), default=None,
                         help="comma-separated interface functions to run (default: all): "
                              + ", ".join(sorted(INTERFACE)))
+
+
+def _memory_mb(text: str) -> int:
+    """--case-memory-mb: ASCII decimal digits only (int() would take "١" or " 8_192 ")."""
+    lo, hi = CASE_MEMORY_RANGE
+    if not (text.isascii() and text.isdigit()) or not lo <= int(text) <= hi:
+        raise argparse.ArgumentTypeError(f"must be an integer number of megabytes in [{lo}, {hi}], got {text!r}")
+    return int(text)
 
 
 def _interface_function(name: str) -> str:
@@ -455,7 +345,8 @@ def run_from_args(args) -> int:
     try:
         res = run(args.impl, args.vectors, only, impl_cmd=impl_cmd, in_process=getattr(args, "in_process", False),
                   case_timeout=getattr(args, "case_timeout", DEFAULT_CASE_TIMEOUT),
-                  start_timeout=getattr(args, "start_timeout", DEFAULT_START_TIMEOUT))
+                  start_timeout=getattr(args, "start_timeout", DEFAULT_START_TIMEOUT),
+                  case_memory_mb=getattr(args, "case_memory_mb", DEFAULT_CASE_MEMORY_MB))
     except (AdapterError, VectorError) as exc:
         return command_error(prog, exc)
     try:

@@ -93,8 +93,12 @@ def test_errors_below_the_expected_value_fail(vector_files):
 
 def test_integer_outputs_are_exact_whatever_the_tolerance(vector_files):
     """[CF-5], [CF-7] Integer outputs (the executor's chunk and token indices, X-4, X-5) are compared
-    exactly, even in cases whose tolerance for the real outputs is not 0 (1e-6 for copied actions)."""
+    exactly, even in cases whose tolerance for the real outputs is not 0 (1e-6 for copied actions), and
+    must be integers: a real within the tolerance of the expected integer fails as the wrong kind."""
     with pytest.raises(runner.CaseFailure, match="exact match required") as info:
+        runner.compare("d", np.array([2, 6]), [2, 5], {"abs": 1.0, "rel": 1e-6}, integer=True)
+    assert info.value.ratio == np.inf
+    with pytest.raises(runner.CaseFailure, match="expected an integer, got 5.0000001") as info:
         runner.compare("d", 5.0000001, 5, {"abs": 1e-6, "rel": 1e-6}, integer=True)
     assert info.value.ratio == np.inf
     assert runner.compare("d", np.array([2, 5]), [2, 5], {"abs": 1e-6, "rel": 1e-6}, integer=True) == 0.0
@@ -107,7 +111,7 @@ def test_integer_outputs_are_exact_whatever_the_tolerance(vector_files):
         res = runner.run(_Only(execute_chunks=nudged), files=vector_files, only={"execute_chunks"})
         values, _ = _split(res, "execute_chunks")
         assert values and all(c.status == "fail" and c.worst == np.inf and key in c.message
-                              and "exact match required" in c.message for c in values), key
+                              and "expected integers, got an array of float64" in c.message for c in values), key
 
 
 def test_wrong_shape_is_never_broadcast(vector_files):
