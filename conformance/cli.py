@@ -1,4 +1,4 @@
-"""`softrtc conformance run|generate|report` ([CF-19], [TP-1]); registered by softrtc/cli.py through add_subparsers.
+"""`softrtc conformance run|generate|report|rollout` ([CF-19], [TP-1], [CR-8]); registered by softrtc/cli.py through add_subparsers.
 
 Also runnable without the main CLI: ``python -m softrtc.conformance run --impl reference``.
 """
@@ -10,7 +10,7 @@ import os
 import sys
 
 from .._cli_util import group_help, leaf_progs
-from . import generate, report, runner
+from . import generate, report, rollout, runner
 
 
 def add_subparsers(subparsers) -> None:
@@ -34,6 +34,10 @@ def _fill(conf: argparse.ArgumentParser) -> None:
                                           "write it, --check it, or print its README --summary")
     report.add_arguments(rep_p)
     rep_p.set_defaults(func=report.run_from_args)
+    roll_p = sub.add_parser("rollout", help="closed-loop rollouts on the arm: an implementation makes every chunk, "
+                                            "checked request by request against the reference, or --vectors")
+    rollout.add_arguments(roll_p)
+    roll_p.set_defaults(func=rollout.run_from_args)
 
 
 def demo() -> int:

@@ -1,0 +1,253 @@
+"""`softrtc conformance rollout`: an implementation drives the arm in closed loop ([CR-1]..[CR-8], [CR-10]).
+
+    softrtc conformance rollout --impl reference|jax|torch|torch-flipped|lerobot|module:ATTR|file.py
+    softrtc conformance rollout --impl-cmd "node conformance/ports/js/rollout.js"
+    softrtc conformance rollout --impl X --vectors [DIR]      (replay the rollout vectors, [CR-10])
+
+Each request of each episode is checked against the reference on the same
+inputs; the report gives, per requirement, the cases (one per output of each
+request), per episode the first request whose executed actions leave the
+tolerance, and the paired differences of success, D1..D3 and boundary jump
+against the reference's own episodes ([CR-6], [CR-7]), in the formats of
+`conformance run` ([CR-8]).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import sys
+import time
+
+from .._cli_util import command_error
+from .._files import write_json
+from . import SPEC_VERSION
+from .adapter import AdapterError
+from .protocol import ChildLost, ImplementationError
+from .results import RunResult, format_summary, report_dict, write_junit
+from .rollout_impls import METHODS, ReferenceRollout, impl_methods, load_rollout_impl
+from .rollout_loop import METRICS, Checker, Settings, run_episode
+
+ROLLOUT_FORMAT = "rollout-1"
+ENVS = ("arm", "kinetix")
+
+
+class _InProcess:
+    """A Python rollout implementation called in the runner's process (``--in-process``)."""
+
+    def __init__(self, impl, field):
+        self.impl, self.name = impl, impl.name
+        self.time_convention = getattr(impl, "time_convention", "data_at_1")
+        self.field = field if self.time_convention == "data_at_1" else field.flipped()
+        self.methods = impl_methods(impl)
+        self.isolation = "in process"
+
+    def answer(self, c: int, args: dict) -> dict:
+        return self.impl.rollout_chunk(self.field, **args)
+
+    def close(self) -> None:
+        pass
+
+
+class _Child:
+    """An implementation in a child process, the field served over the protocol ([CR-4])."""
+
+    def __init__(self, argv: list, label: str, field, timeout: float, start_timeout: float):
+        from .rollout_child import RolloutChild
+
+        self.child = RolloutChild(argv, start_timeout, label)
+        self.child.start()
+        self.name, self.time_convention = self.child.name, self.child.time_convention
+        self.field = field if self.time_convention == "data_at_1" else field.flipped()
+        self.methods = tuple(METHODS)
+        self.timeout, self.rid = timeout, 0
+        self.isolation = "child process"
+
+    def answer(self, c: int, args: dict) -> dict:
+        self.rid += 1
+        try:
+            reply = self.child.call(self.rid, args, self.field, self.timeout)
+        except ChildLost as exc:
+            self.child.restart()
+            raise RuntimeError(str(exc)) from None
+        if "error" in reply:
+            err = reply["error"] if isinstance(reply["error"], dict) else {"message": str(reply["error"])}
+            text = f"{err.get('type', err.get('kind', 'error'))}: {err.get('message', '')}"
+            if err.get("kind") == "unsupported":
+                raise NotImplementedError(text)
+            raise RuntimeError(text)
+        return reply["result"]
+
+    def close(self) -> None:
+        self.child.stop()
+
+
+def open_impl(impl, impl_cmd, field, in_process: bool, timeout: float = 60.0, start_timeout: float = 120.0):
+    """The implementation under test, in process or as a child ([CR-4]); AdapterError when it cannot load."""
+    if impl_cmd is not None:
+        return _Child(shlex.split(impl_cmd), f"impl-cmd {impl_cmd!r}", field, timeout, start_timeout)
+    if in_process:
+        return _InProcess(load_rollout_impl(impl), field)
+    argv = [sys.executable, "-m", "softrtc.conformance.rollout_child", "--impl", impl]
+    return _Child(argv, f"impl {impl!r}", field, timeout, start_timeout)
+
+
+def paired(impl_eps: list, ref_eps: list) -> dict:
+    """Paired differences implementation - reference per metric with 95% bootstrap intervals ([CR-7])."""
+    from softrtc.arm.paired_stats import paired_difference
+
+    out = {}
+    for m in METRICS:
+        a = [e.metrics.get(m, math.nan) for e in impl_eps]
+        b = [e.metrics.get(m, math.nan) for e in ref_eps]
+        r = paired_difference([a], [b], num_resamples=2000, seed=0)
+        n_impl = [x for x in a if x == x]
+        n_ref = [x for x in b if x == x]
+        out[m] = {"impl": sum(n_impl) / len(n_impl) if n_impl else None,
+                  "reference": sum(n_ref) / len(n_ref) if n_ref else None,
+                  **{k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in r.items()}}
+    return out
+
+
+def run(impl=None, *, impl_cmd=None, settings: Settings = Settings(), env: str = "arm", checkpoint=None,
+        in_process: bool = False, timeout: float = 60.0, progress=None) -> dict:
+    """A closed-loop rollout check ([CR-5]..[CR-8]); returns {"result": RunResult, "episodes", "paired"}."""
+    from .rollout_field import ArmWorld, ServedField
+
+    if env != "arm":
+        raise ValueError(f"env must be 'arm' (Kinetix rollouts are not implemented, [CR-12]), got {env!r}")
+    if (impl is None) == (impl_cmd is None):
+        raise ValueError("give exactly one of impl and impl_cmd")
+    t0 = time.perf_counter()
+    field = ServedField(checkpoint)
+    world = ArmWorld(field, max_steps=settings.max_steps)
+    under = open_impl(impl, impl_cmd, field, in_process, timeout)
+    checker = Checker(field, env)
+    reference = ReferenceRollout()
+    episodes, pairs = [], {}
+    try:
+        for method in settings.methods:
+            ours, refs = [], []
+            for i in range(settings.episodes):
+                ep = run_episode(under.answer, field, world, settings, method, i, checker)
+                episodes.append(ep)
+                if ep.unsupported is not None:
+                    break
+                ours.append(ep)
+                refs.append(run_episode(lambda c, a: reference.rollout_chunk(field, **a), field, world, settings,
+                                        method, i))
+                if progress:
+                    progress(ep)
+            if ours:
+                pairs[method] = paired(ours, refs)
+    finally:
+        under.close()
+    res = RunResult(impl if impl is not None else impl_cmd, under.name, under.time_convention, ROLLOUT_FORMAT,
+                    [SPEC_VERSION], checker.cases, time.perf_counter() - t0, under.isolation)
+    return {"result": res, "episodes": episodes, "paired": pairs, "settings": settings.to_dict(), "env": env,
+            "checkpoint": field.checkpoint, "field_calls": dict(field.calls)}
+
+
+def summary_text(out: dict) -> str:
+    """`conformance run`'s summary ([CF-14]), then one line per episode with a divergence and the paired
+    differences per method ([CR-6], [CR-7])."""
+    lines = [format_summary(out["result"])]
+    for ep in out["episodes"]:
+        if ep.unsupported:
+            lines.append(f"  {ep.method}: unsupported ({ep.unsupported})")
+        elif ep.error:
+            lines.append(f"  {ep.method} episode {ep.episode}: {ep.error}")
+        elif ep.first_divergence:
+            fd = ep.first_divergence
+            lines.append(f"  {ep.method} episode {ep.episode}: first divergence at request {fd['request']} "
+                         f"(tick {fd['tick']}), {fd['ratio']:.3g} x tolerance")
+    for method, p in out["paired"].items():
+        cells = []
+        for m in METRICS:
+            r = p[m]
+            if r["diff"] is None:
+                cells.append(f"{m} -")
+            elif r["lo"] is None or r["hi"] is None:
+                cells.append(f"{m} {r['diff']:+.3g}")
+            else:
+                cells.append(f"{m} {r['diff']:+.3g} [{r['lo']:+.3g}, {r['hi']:+.3g}]")
+        lines.append(f"paired {method} (impl - reference, 95% CI, n = {p['success']['n']}): " + "; ".join(cells))
+    return "\n".join(lines)
+
+
+def report_doc(out: dict) -> dict:
+    """The --report JSON: `conformance run`'s document plus the rollout's settings, episodes, pairs ([CR-8])."""
+    doc = report_dict(out["result"])
+    doc["rollout"] = {"env": out["env"], "checkpoint": out["checkpoint"].split("softrtc/")[-1],
+                      "settings": out["settings"], "episodes": [e.to_dict() for e in out["episodes"]],
+                      "paired": out["paired"]}
+    return doc
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    who = parser.add_mutually_exclusive_group(required=True)
+    who.add_argument("--impl", help="reference, jax, torch, torch-flipped, lerobot, a mutant (mutant-*), "
+                                    "module[:ATTR] or file.py[:ATTR] with rollout_chunk")
+    who.add_argument("--impl-cmd", help="a program speaking the rollout protocol ([CR-4])")
+    parser.add_argument("--env", default="arm", choices=ENVS, help="simulator (kinetix: not implemented)")
+    parser.add_argument("--episodes", type=int, default=20, help="episodes per method (default 20)")
+    parser.add_argument("--methods", default="naive,train_hard,train_soft,inference_hard",
+                        help="comma-separated methods of [S-6] (default naive,train_hard,train_soft,inference_hard)")
+    parser.add_argument("--delays", default="0,1,2,3,4,5", help="delays drawn for requests c >= 1 (default 0..5)")
+    parser.add_argument("--max-steps", type=int, default=400, help="ticks per episode at most (default 400)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of environments, noise and delays (default 0)")
+    parser.add_argument("--checkpoint", default=None, help="arm checkpoint to serve (default the drift base)")
+    parser.add_argument("--in-process", action="store_true", help="call a Python implementation in this process")
+    parser.add_argument("--case-timeout", type=float, default=60.0, help="seconds per request (default 60)")
+    parser.add_argument("--vectors", nargs="?", const="", default=None,
+                        help="replay the rollout vectors open loop (DIR, default the shipped ones) instead")
+    parser.add_argument("--report", help="write the JSON report here")
+    parser.add_argument("--junit", help="write JUnit XML here")
+    parser.add_argument("--effect", help="write the closed-loop effect (paired differences) as JSON here")
+
+
+def _ints(name: str, text: str) -> tuple:
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"{name} must be comma-separated integers, got {text!r}") from None
+
+
+def run_from_args(args) -> int:
+    prog = "softrtc conformance rollout"
+    try:
+        if args.vectors is not None:
+            from .rollout_vectors import replay
+
+            out = replay(args.impl, impl_cmd=args.impl_cmd, vectors_dir=args.vectors or None,
+                         in_process=args.in_process, timeout=args.case_timeout)
+        else:
+            methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+            settings = Settings(methods, args.episodes, _ints("delays", args.delays), args.max_steps, args.seed)
+            out = run(args.impl, impl_cmd=args.impl_cmd, settings=settings, env=args.env,
+                      checkpoint=args.checkpoint, in_process=args.in_process, timeout=args.case_timeout)
+    except (AdapterError, ImplementationError, ValueError, ImportError) as exc:
+        return command_error(prog, str(exc))
+    text = summary_text(out) if "episodes" in out else format_summary(out["result"])
+    doc = report_doc(out) if "episodes" in out else report_dict(out["result"])
+    if args.report:
+        write_json(args.report, doc)
+    if args.junit:
+        write_junit(out["result"], args.junit)
+    if args.effect and "episodes" in out:
+        write_json(args.effect, effect_doc(out))
+    print(text)
+    return 0 if out["result"].ok else 1
+
+
+def effect_doc(out: dict) -> dict:
+    """The closed-loop effect of an implementation against the reference ([CR-7]): settings, paired
+    differences per method and the per-episode first divergences, without the per-request cases."""
+    res = out["result"]
+    return {"impl": res.impl, "name": res.adapter_name, "env": out["env"],
+            "checkpoint": out["checkpoint"].split("softrtc/")[-1], "settings": out["settings"], "ok": res.ok,
+            "requirements": {k: v["status"] for k, v in res.by_requirement().items()},
+            "paired": out["paired"],
+            "first_divergence": [{"method": e.method, "episode": e.episode, **(e.first_divergence or {})}
+                                 for e in out["episodes"] if e.first_divergence]}
