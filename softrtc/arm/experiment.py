@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softrtc._machine import cpu_model
 from softrtc.reference import endpoints as rep
 from softrtc.reference import weights as rw
 from softrtc.reference.methods import check_method_step
@@ -47,7 +48,9 @@ DEFAULT_WINDOW = rw.SoftWindow()
 PAPER_WINDOW = rw.SoftWindow(rep.delay_scaled(2.0, 5), "linear", "rtc", "zeros")
 
 EPISODE_FIELDS = ("row", "seed", "delay", "episode", "env_seed", "success", "completed", "completion", "steps",
-                  "success_step", "D1", "D2", "D3", "boundary", "mean_abs_action")
+                  "success_step", "D1", "D2", "D3", "boundary", "mean_abs_action", "cpu_model")
+# [AX-9] Results are bitwise reproducible on the same CPU model only ([S-15]): every result file records it.
+# Files written before it was recorded lack the column or key and still read (empty: unknown).
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,8 +220,18 @@ def _episode_row(name, seed, delay, i, env_seed, rec, metrics) -> dict:
             "mean_abs_action": float(np.mean(np.abs(a))) if a.size else float("nan")}
 
 
+def cpu_models(manifest: dict | None) -> list:
+    """Every CPU model that wrote into a results folder: ``manifest``'s (None or a manifest written before they
+    were recorded: none) and this machine's ([AX-9])."""
+    old = [] if manifest is None else manifest.get("cpu_models", [])
+    if not isinstance(old, list) or not all(isinstance(c, str) for c in old):
+        raise ValueError(f"manifest['cpu_models'] must be a list of strings, got {old!r}")
+    return sorted(set(old) | {cpu_model()})
+
+
 def read_episodes(path) -> list:
-    """Rows of an episode CSV as dicts with typed values."""
+    """Rows of an episode CSV as dicts with typed values (the machine's ``cpu_model`` column, [AX-9], is not read:
+    older files lack it)."""
     out = []
     with open(path, newline="") as f:
         for r in csv.DictReader(f):
@@ -264,6 +277,7 @@ def _run_cell(args) -> tuple:
     policy = _load(ckpt, task, row)
     t0 = time.perf_counter()
     tmp = str(path) + ".part"
+    cpu = cpu_model()  # [AX-9]
     # Episode i depends on i only, so a shorter complete file is the prefix of a longer one: extend it.
     done = []
     if os.path.isfile(path):
@@ -279,7 +293,8 @@ def _run_cell(args) -> tuple:
             rec = run_simulated_episode(policy, seed0 + i, delay, jax.random.fold_in(jax.random.key(key_seed), i),
                                         max_steps=max_steps, env_config=task.env_config)
             m = episode_metrics(rec)
-            w.writerow({k: _fmt(v) for k, v in _episode_row(row.name, seed, delay, i, seed0 + i, rec, m).items()})
+            w.writerow({**{k: _fmt(v) for k, v in _episode_row(row.name, seed, delay, i, seed0 + i, rec, m).items()},
+                        "cpu_model": cpu})
     os.replace(tmp, path)
     return str(path), time.perf_counter() - t0
 
@@ -320,7 +335,8 @@ def measure_prior_error(base_ckpt, task: ArmTask, episodes: int, max_steps: int,
     allv = np.concatenate([p for p in pooled if p.size]) if any(p.size for p in pooled) else np.zeros((1, o, 4))
     sigma = np.zeros((H, 4))
     sigma[:o] = np.sqrt(np.mean(allv ** 2, axis=0))
-    return {"rms": {str(k): v for k, v in rms.items()}, "sigma": sigma.tolist(), "episodes": episodes}
+    return {"rms": {str(k): v for k, v in rms.items()}, "sigma": sigma.tolist(), "episodes": episodes,
+            "cpu_model": cpu_model()}  # [AX-9]
 
 
 # --------------------------------------------------------------------------- fine-tunes
@@ -368,7 +384,8 @@ def _finetune(key: str, row: Row, task: ArmTask, seed: int, budget: Budget, data
         model, losses = train(base.model, {"obs": obs, "actions": act}, tc, k, budget.finetune_steps, progress=True)
     save_arm_checkpoint(path, model, norm, cfg, method, {"experiment_key": key, "seed": seed}, tc)
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
-    return {"key": key, "seed": seed, "steps": budget.finetune_steps, "final_loss": float(np.mean(losses[-20:])),
+    return {"key": key, "seed": seed, "cpu_model": cpu_model(),  # [AX-9]
+            "steps": budget.finetune_steps, "final_loss": float(np.mean(losses[-20:])),
             "seconds": round(time.perf_counter() - t0, 1), "sha256_16": digest,
             "window": None if row.window is None or key == "hard" else row.window.to_dict()}
 
@@ -443,8 +460,9 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
                 "order": [r.name for r in all_rows]}
     # Compared as JSON: tuples come back from the file as lists.
     manifest = json.loads(json.dumps(manifest))
-    if manifest_path.is_file():
-        old = json.loads(manifest_path.read_text())
+    old = json.loads(manifest_path.read_text()) if manifest_path.is_file() else None
+    manifest["cpu_models"] = cpu_models(old)
+    if old is not None:
         if old.get("budget_values") != manifest["budget_values"] or old.get("base_sha256_16") != \
                 manifest["base_sha256_16"] or old.get("seed0") != seed0 or old.get("key_seed") != key_seed:
             raise ValueError(f"{manifest_path} was written with another budget, base or seeds; use another --out")
