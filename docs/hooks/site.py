@@ -4,8 +4,8 @@
   (spec_index.py), and ``spec/`` the index of every id;
 - ``code/<path>/``: each source file a spec page links to, every line an anchor;
 - ``conformance/vectors/``: the vector files with case counts, the files themselves downloadable;
-- the reports kept beside their data (results/arm/REPORT.md with its plots, the LeRobot compatibility
-  report, the JavaScript port's README);
+- the reports kept beside their data (results/arm/REPORT.md with its plots, the third-party compatibility
+  reports under conformance/thirdparty/, the JavaScript port's README);
 - the navigation, which lists every page under docs/guides/ so a new guide appears without editing the
   configuration;
 - the versions the site documents (softrtc, spec, vector format) in the header of every page.
@@ -27,6 +27,8 @@ log = logging.getLogger("mkdocs.hooks.softrtc")
 # Guides shown first, in this order; any other docs/guides/*.md follows in file-name order.
 GUIDE_ORDER = ("validating.md", "porting.md", "commands.md", "jax.md", "torch.md", "arm.md", "kinetix.md")
 # Plots of the arm experiment shown under its report, per task folder that has them.
+# The index of the build in progress (on_files makes it, on_page_markdown uses it).
+_INDEX: list = []
 ARM_PLOTS = ("success_by_delay.png", "frontier.png", "sweeps.png", "window_weights.png")
 
 
@@ -79,6 +81,7 @@ def _arm_report(task_dirs) -> str:
 
 def on_files(files, config, **kwargs):
     index = si.build_index(ROOT)
+    _INDEX[:] = [index]
     header = version_line()
     _add(files, config, "spec/index.md", content=si.render_spec_index(index, header))
     for ch in index.chapters:
@@ -90,7 +93,10 @@ def on_files(files, config, **kwargs):
         _add(files, config, f"conformance/vectors/{name}", path=ROOT / "conformance" / "vectors" / name)
     _add(files, config, "conformance/vectors/index.json", path=ROOT / "conformance" / "vectors" / "index.json")
     _add(files, config, "conformance/js-port.md", path=ROOT / "conformance" / "ports" / "js" / "README.md")
-    _add(files, config, "reports/lerobot-report.md", path=ROOT / "conformance" / "thirdparty" / "lerobot.md")
+    reports = third_party_reports()
+    for rel in reports:
+        _add(files, config, f"reports/thirdparty/{rel}", path=ROOT / "conformance" / "thirdparty" / rel)
+    _add(files, config, "reports/thirdparty.md", content=_third_party_page(reports))
     tasks = sorted(p.name for p in (ROOT / "results" / "arm").iterdir() if p.is_dir())
     _add(files, config, "reports/arm-report.md", content=_arm_report(tasks))
     for task in tasks:
@@ -104,6 +110,30 @@ def on_files(files, config, **kwargs):
         _add(files, config, f"reports/kinetix/{p.name}", path=p)
     config.nav = _nav(files, index)
     return files
+
+
+def on_page_markdown(markdown, page, config, files, **kwargs):
+    """On the hand-written pages, each bracketed requirement id links to its rule (the sources stay plain)."""
+    uri = page.file.src_uri
+    if uri.startswith(("spec/", "code/")):
+        return markdown
+    depth = uri.count("/")
+    return si.link_ids(markdown, _INDEX[0], "../" * depth + "spec/")
+
+
+def third_party_reports() -> list:
+    """The compatibility reports under conformance/thirdparty/ ([TP-4]), as paths relative to it."""
+    base = ROOT / "conformance" / "thirdparty"
+    return sorted(p.relative_to(base).as_posix() for p in base.rglob("*.md"))
+
+
+def _third_party_page(reports) -> str:
+    out = ["# Third-party compatibility reports", "",
+           "Each report is written by `softrtc conformance report` from a run of the conformance vectors "
+           "([TP-4]) and kept in `conformance/thirdparty/`; the summary and how to reproduce it are on "
+           "[LeRobot compatibility](lerobot.md).", ""]
+    out += [f"- [{rel}](thirdparty/{rel})" for rel in reports] or ["No report is committed."]
+    return "\n".join(out) + "\n"
 
 
 def _guides(files) -> list:
@@ -122,7 +152,7 @@ def _nav(files, index) -> list:
         {"Specification": ["spec/index.md"] + [{ch.title: f"spec/{ch.slug}.md"} for ch in index.chapters]},
         {"Guides": _guides(files)},
         {"Conformance": ["conformance/vectors.md", "conformance/js-port.md"]},
-        {"Reports": ["reports/arm.md", "reports/arm-report.md", "reports/lerobot.md", "reports/lerobot-report.md",
+        {"Reports": ["reports/arm.md", "reports/arm-report.md", "reports/lerobot.md", "reports/thirdparty.md",
                      "reports/kinetix.md", "reports/benchmarks.md"]},
         {"API reference": api},
         {"About this site": "about.md"},

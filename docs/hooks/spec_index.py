@@ -196,7 +196,7 @@ def code_page_uri(path: str) -> str:
     return f"code/{path}.md"
 
 
-def _link_refs(text: str, index: SpecIndex, slug: str) -> str:
+def _link_refs(text: str, index: SpecIndex, slug, prefix: str = "") -> str:
     """Bracketed ids outside inline code become links to their definition (same page: ``#W-4``)."""
     parts = re.split(r"(`+[^`]*`+)", text)
     for k in range(0, len(parts), 2):  # even parts lie outside code spans
@@ -205,7 +205,7 @@ def _link_refs(text: str, index: SpecIndex, slug: str) -> str:
             ident = m.group(1)
             if ident not in index.where:
                 return m.group(0)
-            target = "" if index.where[ident] == slug else f"{index.where[ident]}.md"
+            target = "" if index.where[ident] == slug else f"{prefix}{index.where[ident]}.md"
             return f"[\\[{ident}\\]]({target}#{ident})"
 
         parts[k] = REF.sub(repl, parts[k])
@@ -222,6 +222,21 @@ def _grouped(cites) -> str:
         links = ", ".join(f"[{c.name or f'line {c.line}'}](../{code_page_uri(c.path)}#L{c.line})" for c in lst)
         parts.append(f"`{path}`: {links}")
     return "; ".join(parts)
+
+
+def link_ids(markdown: str, index: SpecIndex, spec_prefix: str) -> str:
+    """Every bracketed id outside code (fenced blocks, inline spans) as a link to its rule's address.
+
+    ``spec_prefix`` is the path from the page to the spec pages (``../spec/`` from ``guides/x.md``); used
+    on the guides and reports, whose sources keep plain ``[W-4]`` so that they read well as files too.
+    """
+    out, fence = [], False
+    for line in markdown.split("\n"):
+        if line.lstrip().startswith("```"):
+            fence = not fence
+        out.append(line if fence or line.lstrip().startswith("```") else
+                   _link_refs(line, index, None, spec_prefix))
+    return "\n".join(out)
 
 
 def _where_lines(ident: str, index: SpecIndex) -> list:
@@ -276,7 +291,8 @@ def render_chapter(chapter: Chapter, index: SpecIndex, root, header: str = "") -
             tail = tail[2:] if bold and tail.startswith("**") else tail
             anchor = f'<span class="req-id" id="{ident}"></span>'
             idlink = f"[\\[{ident}\\]](#{ident})"
-            out.append(f"{lead}{anchor}{'**' + idlink + '**' if bold else idlink}{_link_refs(tail, index, chapter.slug)}")
+            idtext = f"**{idlink}**" if bold else idlink
+            out.append(f"{lead}{anchor}{idtext}{_link_refs(tail, index, chapter.slug)}")
             pending = ident
             continue
         out.append(_link_refs(line, index, chapter.slug))

@@ -1,4 +1,4 @@
-"""The README's real-time study table and its committed results ([A-25])."""
+"""The arm results page's real-time study table and its committed results ([A-25])."""
 
 from __future__ import annotations
 
@@ -14,13 +14,13 @@ END = "<!-- arm-study:end -->"
 
 
 def test_readme_study_table_is_the_committed_results():
-    """A-25: the README's study table is what `python -m softrtc.arm.study` recomputes from the committed
-    results.csv; the run has at least 20 trials per method, run interleaved (each trial's methods in an order
+    """A-25: the study table of the arm results page (docs/reports/arm.md) is what `python -m softrtc.arm.study`
+    recomputes from the committed results.csv; the run has at least 20 trials per method, run interleaved (each trial's methods in an order
     rotated by the trial index)."""
     pytest.importorskip("jax")
     from softrtc.arm.study import read_results, table_from_results
 
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "reports" / "arm.md").read_text()
     assert BEGIN in text and END in text
     block = text.split(BEGIN, 1)[1].split(END, 1)[0]
     assert block == "```\n" + table_from_results(RESULTS) + "\n```\n"

@@ -23,9 +23,9 @@ from softrtc.conformance.adapters.lerobot import ADAPTER, INSTALL_HINT, RTCConfi
 from softrtc.reference import guidance, velocity  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
-REPORT_MD = ROOT / "conformance" / "thirdparty" / "lerobot.md"
+REPORT_MD = ROOT / "conformance" / "thirdparty" / "lerobot" / "lerobot-0.4.4.md"
 REPORT_JSON = REPORT_MD.with_suffix(".json")
-README = ROOT / "README.md"
+README = ROOT / "docs" / "reports" / "lerobot.md"
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +49,7 @@ def _weights(H, d, e, schedule):
 def test_committed_report_matches_a_fresh_run(fresh_report):
     """[TP-1] [TP-2] [TP-4] The committed report and its JSON agree with a fresh run of LeRobot through the
     runner (numbers within the rounding tolerance), and the Markdown is the rendering of the JSON.
-    Regenerate with: softrtc conformance report --impl lerobot --out conformance/thirdparty/lerobot.md"""
+    Regenerate with: softrtc conformance report --impl lerobot --out conformance/thirdparty/lerobot/lerobot-0.4.4.md"""
     committed = json.loads(REPORT_JSON.read_text())
     assert report.differences(committed, json.loads(report.json_text(fresh_report))) == []
     assert REPORT_MD.read_text() == report.render(committed)
@@ -72,11 +72,11 @@ def test_report_counts_equal_the_runner_on_its_own(vector_files, fresh_report):
 
 
 def test_readme_holds_the_summary_of_the_committed_report():
-    """[TP-5] The README's LeRobot subsection is `softrtc conformance report --summary
-    conformance/thirdparty/lerobot.json`, verbatim between its markers."""
+    """[TP-5] The LeRobot compatibility page's summary is `softrtc conformance report --summary
+    conformance/thirdparty/lerobot/lerobot-0.4.4.json`, verbatim between its markers."""
     text = README.read_text()
     m = re.search(r"<!-- lerobot-summary:start -->\n(.*?)<!-- lerobot-summary:end -->", text, re.S)
-    assert m, "README lacks the lerobot-summary markers"
+    assert m, "docs/reports/lerobot.md lacks the lerobot-summary markers"
     assert m.group(1) == report.summary(json.loads(REPORT_JSON.read_text()))
 
 

@@ -397,22 +397,23 @@ README_END = "<!-- end of softrtc bench table -->"
 
 
 def readme_block(results) -> str:
-    """What the README's runtime section shows between its markers: `softrtc bench table`'s output ([B-15])."""
+    """What the benchmarks page's runtime section shows between its markers: `softrtc bench table`'s output ([B-15])."""
     return (f"{README_BEGIN}\n```\n{bench_report.format_table(results[0])}\n```\n\n"
             f"{bench_report.format_ranges(results)}\n{README_END}")
 
 
 def test_readme_runtime_tables_are_the_committed_results():
-    """B-15, B-10, B-9: the README's benchmark table and ratio ranges are what `softrtc bench table` makes of the
-    result files committed under results/bench/; the committed runs check their chunks and have every row."""
+    """B-15, B-10, B-9: the table and ratio ranges of the benchmarks page (docs/reports/benchmarks.md) are what
+    `softrtc bench table` makes of the result files committed under results/bench/; the committed runs check
+    their chunks and have every row."""
     assert len(RESULTS) >= 2, RESULTS
     results = [bench_report.read_result(p) for p in RESULTS]
     for res in results:
         assert res["config"]["arch"] == "benchmark" and res["config"]["path"] == "fast"
         assert [t for t in res["targets"] if t["id"] == "B-5"][0]["pass"]
         assert [r["key"] for r in res["rows"]][-1] == "inference_soft/public"
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[2] / "docs" / "reports" / "benchmarks.md").read_text()
     i, j = readme.find(README_BEGIN), readme.find(README_END)
-    assert 0 <= i < j, "the README lacks the markers of the benchmark tables"
+    assert 0 <= i < j, "the benchmarks page lacks the markers of the benchmark tables"
     assert readme[i:j + len(README_END)] == readme_block(results)
 

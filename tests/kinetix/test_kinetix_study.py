@@ -1,4 +1,5 @@
-"""The reduced Kinetix study's README block is the report of its committed result files ([KP-14])."""
+"""The reduced Kinetix study's block on the Kinetix results page is the report of its committed result files
+([KP-14])."""
 
 from __future__ import annotations
 
@@ -28,23 +29,24 @@ def test_curve_summary_by_hand():
 
 
 def test_readme_study_block_matches_the_committed_results():
-    """KP-14: the README's learning-curve table and cost estimate are what study_report prints from
+    """KP-14: the Kinetix results page's learning-curve table and cost estimate are what study_report prints from
     results/kinetix/study/ and results/kinetix/bench.json."""
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "reports" / "kinetix.md").read_text()
     assert BEGIN in text and END in text
     block = text.split(BEGIN, 1)[1].split(END, 1)[0]
     assert block == report(ROOT / "results" / "kinetix" / "study")
 
 
 def test_readme_bench_block_matches_the_committed_bench():
-    """KC-6: the README's compile and throughput table is format_compile_bench of results/kinetix/bench.json."""
+    """KC-6: the Kinetix results page's compile and throughput table is format_compile_bench of
+    results/kinetix/bench.json."""
     import json
 
     pytest.importorskip("jax")
     pytest.importorskip("kinetix")
     from softrtc.kinetix.compile_bench import format_compile_bench
 
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "reports" / "kinetix.md").read_text()
     begin, end = "<!-- kinetix-bench:begin -->\n", "<!-- kinetix-bench:end -->"
     block = text.split(begin, 1)[1].split(end, 1)[0]
     res = json.loads((ROOT / "results" / "kinetix" / "bench.json").read_text())
