@@ -5,13 +5,17 @@ it names a function outside the interface, lacks an argument, names a field the
 file does not hold, holds a tolerance outside [0, 1], an argument array that is
 not a rectangular array of numbers, or an expected output that is missing, not
 numeric, of a shape its arguments do not give, or written as a float where the
-output is an integer. Such a case is a defect of the vectors, never a failure of
-the implementation under test: :class:`~.vectors_io.VectorError`, status 2.
+output is an integer. The rules of ``spec/vectors.schema.json`` are checked too
+([CF-38]): no key the schema does not declare, in the file, a field or a case; no
+argument the function does not take, no output it does not return. Such a case
+is a defect of the vectors, never a failure of the implementation under test:
+:class:`~.vectors_io.VectorError`, status 2.
 """
 
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 
@@ -20,6 +24,36 @@ from .vectors_io import MAX_ABS_INT, VectorError
 
 # Tolerances are fractions: a larger abs or rel passes anything of the size of the quantities checked ([CF-5]).
 MAX_TOLERANCE = 1.0
+
+# The keys spec/vectors.schema.json declares ([CF-38]): anything else is a defect, never ignored.
+TOP_KEYS = ("format_version", "spec_version", "chapter", "title", "generator", "reference", "fields", "cases")
+CASE_KEYS = ("id", "function", "requirements", "tolerance", "args", "expected")
+FIELD_KEYS = ("params", "horizon", "action_dim", "obs_dim", "hidden")
+PARAM_KEYS = ("W1", "Wt", "Wo", "b1", "W2", "b2")
+# The schema's patterns: (key, pattern, what it means).
+HEADER_PATTERNS = (("format_version", r"1\.[0-9]+", "a string '1.MINOR'"),
+                   ("spec_version", r"[0-9]+\.[0-9]+\.[0-9]+", "a string 'MAJOR.MINOR.PATCH'"),
+                   ("chapter", r"[A-Z]+", "capital letters"),
+                   ("title", r".*", "a string"), ("generator", r".*", "a string"), ("reference", r".*", "a string"))
+ID_PATTERN = re.compile(r"[A-Z]+\.[A-Za-z_]+\..+", re.S)
+REQUIREMENT_PATTERN = re.compile(r"[A-Z]+-[0-9]+")
+
+
+def _unknown(where: str, obj: dict, allowed, what: str = "unknown keys") -> None:
+    extra = sorted(str(k) for k in obj if k not in allowed)
+    if extra:
+        raise VectorError(f"{where}: {what} {extra} (spec/vectors.schema.json allows {list(allowed)}, [CF-38])")
+
+
+def check_header(file: str, data: dict) -> None:
+    """The file's top level: only the schema's keys, its header strings on their patterns (all but
+    format_version optional: a hand-made file may omit them), a non-empty case list ([CF-2], [CF-38])."""
+    _unknown(file, data, TOP_KEYS, "unknown top-level keys")
+    for key, pattern, what in HEADER_PATTERNS:
+        if key in data and (not isinstance(data[key], str) or not re.fullmatch(pattern, data[key], re.S)):
+            raise VectorError(f"{file}: '{key}' must be {what}, got {data[key]!r} ([CF-38])")
+    if not isinstance(data.get("cases"), list) or not data["cases"]:
+        raise VectorError(f"{file}: 'cases' must be a non-empty list of cases ([CF-38])")
 
 
 def all_ints(value) -> bool:
@@ -51,12 +85,28 @@ def as_array(what: str, value, dtype) -> np.ndarray:
 
 
 def check_fields(file: str, fields: dict) -> None:
-    """Every field of a file's 'fields' holds 'params' of rectangular real arrays ([F-3], [CF-24])."""
+    """Every field of a file's 'fields' holds exactly the schema's keys: 'params' (the six weight arrays of
+    [F-3], rectangular and real) and the integer sizes ([F-3], [CF-24], [CF-38])."""
     for name, f in fields.items():
         if not isinstance(f, dict) or not isinstance(f.get("params"), dict):
             raise VectorError(f"{file}: field {name!r} has no 'params' object")
+        where = f"{file}: field {name!r}"
+        _unknown(where, f, FIELD_KEYS)
+        missing = [k for k in FIELD_KEYS if k not in f]
+        if missing:
+            raise VectorError(f"{where} lacks {missing} (spec/vectors.schema.json, [CF-38])")
+        for k in FIELD_KEYS[1:]:
+            if isinstance(f[k], bool) or not isinstance(f[k], int) or f[k] < 1:
+                raise VectorError(f"{where}: '{k}' must be an integer >= 1, got {f[k]!r} ([CF-38])")
+        _unknown(f"{where} params", f["params"], PARAM_KEYS)
+        missing = [k for k in PARAM_KEYS if k not in f["params"]]
+        if missing:
+            raise VectorError(f"{where} params lack {missing} ([F-3], [CF-38])")
         for k, v in f["params"].items():
-            as_array(f"{file}: field {name!r} {k}", v, np.float64)
+            a = as_array(f"{file}: field {name!r} {k}", v, np.float64)
+            if a.ndim != (1 if k.startswith("b") else 2):
+                raise VectorError(f"{where} {k} must be a {'vector' if k.startswith('b') else 'matrix'}, "
+                                  f"got {a.ndim} dimensions ([F-3], [CF-38])")
 
 
 def check_case(file: str, i: int, case, fields: dict) -> None:
@@ -70,14 +120,24 @@ def check_case(file: str, i: int, case, fields: dict) -> None:
             raise VectorError(f"{where} ({case.get('id', '?')!r}): '{key}' must be a {kind.__name__}, "
                               f"got {type(case.get(key)).__name__}")
     where = f"{where} ({case['id']!r})"
-    if not case["requirements"] or not all(isinstance(r, str) for r in case["requirements"]):
-        raise VectorError(f"{where}: 'requirements' must be a non-empty list of strings")
+    _unknown(where, case, CASE_KEYS)
+    if not ID_PATTERN.fullmatch(case["id"]):
+        raise VectorError(f"{where}: 'id' {case['id']!r} must look like CHAPTER.function.name ([CF-6], [CF-38])")
+    reqs = case["requirements"]
+    if not reqs or not all(isinstance(r, str) and REQUIREMENT_PATTERN.fullmatch(r) for r in reqs) \
+            or len(set(reqs)) != len(reqs):
+        raise VectorError(f"{where}: 'requirements' must be a non-empty list of distinct ids like 'W-1', got {reqs!r}")
     fn = INTERFACE.get(case["function"])
     if fn is None:
         raise VectorError(f"{where}: 'function' {case['function']!r} is not an interface function ([CF-7])")
     missing = [a for a in fn.args if a not in case["args"]]
     if missing:
         raise VectorError(f"{where}: 'args' lacks {missing} of {case['function']}({', '.join(fn.args)})")
+    alt = ALTERNATES.get(case["function"])
+    extra = sorted(a for a in case["args"] if a not in fn.args and (alt is None or a != alt.needs))
+    if extra:
+        raise VectorError(f"{where}: 'args' holds {extra}, which {case['function']}({', '.join(fn.args)}) does not "
+                          "take ([CF-7], [CF-38])")
     if "field" in fn.args:
         name = case["args"]["field"]
         if not isinstance(name, str) or not isinstance(fields.get(name), dict) \
@@ -101,6 +161,10 @@ def check_case(file: str, i: int, case, fields: dict) -> None:
     missing = [k for k in fn.outputs if k not in exp]
     if missing:
         raise VectorError(f"{where}: 'expected' lacks outputs {missing} of {case['function']}")
+    extra = sorted(k for k in exp if k not in fn.outputs)
+    if extra:
+        raise VectorError(f"{where}: 'expected' holds {extra}, which {case['function']} does not return "
+                          f"(its outputs: {list(fn.outputs)}; [CF-7], [CF-38])")
     _check_expected(where, case, fn, arrays)
 
 

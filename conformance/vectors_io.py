@@ -71,7 +71,7 @@ def _path(name: str, value) -> Path:
 def load_vectors(directory=None) -> list[dict]:
     """Read every vector file of ``directory`` (index.json excluded), checking format_version ([CF-2]),
     the index ([CF-25]) and every case ([CF-24], [CF-28]); raise VectorError naming the first problem."""
-    from .vector_checks import check_case, check_fields
+    from .vector_checks import check_case, check_fields, check_header
 
     d = _path("directory", directory) if directory is not None else vectors_dir()
     if not d.is_dir():
@@ -96,8 +96,7 @@ def load_vectors(directory=None) -> list[dict]:
             raise VectorError(f"{p.name}: expected a JSON object with 'format_version' and 'cases', "
                               f"got a {type(data).__name__}")
         check_format(p.name, data.get("format_version"))
-        if not isinstance(data.get("cases"), list):
-            raise VectorError(f"{p.name}: missing 'cases' list")
+        check_header(p.name, data)
         fields = data.get("fields", {})
         if not isinstance(fields, dict):
             raise VectorError(f"{p.name}: 'fields' must be a JSON object, got {type(fields).__name__}")

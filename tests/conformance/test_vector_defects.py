@@ -98,3 +98,74 @@ def test_generate_check_on_a_closed_pipe_and_an_empty_directory(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1 and "holds no vector files" in lines[0], r.stderr
     assert list(empty.iterdir()) == []
+
+
+# ---------------------------------------------------------------- the schema's rules ([CF-38])
+
+def _file(*cases, **top) -> str:
+    doc = {"format_version": "1.2", "spec_version": "0.1.0", "chapter": "M", "title": "t", "generator": "g",
+           "reference": "r", "cases": list(cases) or [_case()]}
+    doc.update(top)
+    return json.dumps(doc)
+
+
+_FIELD = {"params": {"W1": [[0.0]], "Wt": [[0.0]], "Wo": [[0.0]], "b1": [0.0], "W2": [[0.0]], "b2": [0.0]},
+          "horizon": 1, "action_dim": 1, "obs_dim": 1, "hidden": 1}
+
+
+@pytest.mark.parametrize("text,needle", [
+    (_file(_case(note="hand-made")), "case 0 ('M.standard_error.x'): unknown keys ['note']"),
+    (_file(comment="x"), "unknown top-level keys ['comment']"),
+    (_file(_case(args={"values": [1.0, 2.0, 3.0, 4.0], "ddof": 1})),
+     "'args' holds ['ddof'], which standard_error(values) does not take"),
+    (_file(_case(expected={"value": 0.6454972243679028, "mean": 2.5})),
+     "'expected' holds ['mean'], which standard_error does not return"),
+    (_file(_case(expected={"error": "ValueError", "value": 1.0})), "exactly {'error': 'ValueError'}"),
+    (_file(_case(id="standard_error.x")), "'id' 'standard_error.x' must look like"),
+    (_file(_case(requirements=["M-6", "M-6"])), "'requirements' must be"),
+    (_file(_case(requirements=["m6"])), "'requirements' must be"),
+    (_file(spec_version="1"), "'spec_version' must be"),
+    (_file(chapter="metrics"), "'chapter' must be"),
+    (_file(title=3), "'title' must be"),
+    (_file(cases=[]), "'cases' must be a non-empty list"),
+    (_file(fields={"f": dict(_FIELD, extra=1)}), "field 'f': unknown keys ['extra']"),
+    (_file(fields={"f": {k: v for k, v in _FIELD.items() if k != "hidden"}}), "field 'f' lacks ['hidden']"),
+    (_file(fields={"f": dict(_FIELD, params=dict(_FIELD["params"], W3=[[0.0]]))}), "unknown keys ['W3']"),
+    (_file(fields={"f": dict(_FIELD, horizon=0)}), "'horizon' must be an integer >= 1"),
+])
+def test_what_the_schema_forbids_is_a_vector_error(tmp_path, text, needle):
+    """[CF-38], [CF-22], [CF-24] Every rule of spec/vectors.schema.json is checked when a file is read: a key the
+    schema does not declare (in a case, at the top level, in a field), an argument the function does not take,
+    an output it does not return, an id, requirement, version or chapter off its pattern, an empty case list.
+    Each stops loading with one line naming the file (and the case); jsonschema, when installed, refuses the
+    same file, so the reader and the schema agree."""
+    (tmp_path / "v.json").write_text(text)
+    with pytest.raises(runner.VectorError) as info:
+        runner.load_vectors(tmp_path)
+    assert needle in str(info.value) and str(info.value).startswith("v.json"), str(info.value)
+    jsonschema = pytest.importorskip("jsonschema")
+    schema = json.loads((ROOT / "spec" / "vectors.schema.json").read_text())
+    if "does not take" in needle or "does not return" in needle:
+        return  # per-function arguments and outputs are beyond what the schema's JSON can say
+    assert list(jsonschema.Draft202012Validator(schema).iter_errors(json.loads(text))), needle
+
+
+def test_schema_errors_exit_2_before_any_case_runs(tmp_path):
+    """[CF-38], [CF-16] From the command line an extra key in a case is exit 2 with one error line naming the
+    file and the case, and no case runs (no summary)."""
+    (tmp_path / "v.json").write_text(_file(_case(), _case(id="M.standard_error.y", extra=True)))
+    r = _cli("run", "--impl", "reference", "--vectors", str(tmp_path))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and r.stdout == "" and len(lines) == 1, r.stdout + r.stderr
+    assert "v.json: case 1 ('M.standard_error.y'): unknown keys ['extra']" in lines[0]
+
+
+def test_a_minimal_hand_made_file_still_reads(tmp_path):
+    """[CF-38] The descriptive header keys are optional for a hand-made file (the generator writes them all):
+    format_version and a non-empty case list suffice, as the schema says."""
+    (tmp_path / "v.json").write_text(json.dumps({"format_version": "1.2", "cases": [_case()]}))
+    assert len(runner.load_vectors(tmp_path)[0]["cases"]) == 1
+    jsonschema = pytest.importorskip("jsonschema")
+    schema = json.loads((ROOT / "spec" / "vectors.schema.json").read_text())
+    assert not list(jsonschema.Draft202012Validator(schema).iter_errors(
+        {"format_version": "1.2", "cases": [_case()]}))
