@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import torch
 
+from softrtc.reference.methods import check_method_step
+
 from . import _validate as v
 from .executor import check_delay
 from .guidance import MAX_GUIDANCE, guidance_weights, guided_sample
@@ -48,13 +50,16 @@ def method_weights(method: str, H: int, s: int, d, window=None, *, dtype=None, d
 
 
 def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, T: int, window=None,
-                   max_guidance: float = MAX_GUIDANCE, *, convention: str = "data_at_1") -> torch.Tensor:
+                   max_guidance: float = MAX_GUIDANCE, *, convention: str = "data_at_1",
+                   step: str = "algorithm1") -> torch.Tensor:
     """A batch of chunks by ``method`` ([S-6]); ``prior`` None is the first chunk: naive with d = 0 ([X-2]).
 
     ``d`` is one int for the batch or a tensor [B] of per-example delays. Arguments the method
-    ignores are checked all the same ([S-8]).
+    ignores are checked all the same ([S-8]). ``step`` ([S-10]) is the training-time sampler's; naive
+    accepts either, the guided methods only "algorithm1" ([S-14]).
     """
     v.choice("method", method, METHODS)
+    step = check_method_step(method, step)
     x, y, _, T = check_batch(obs, noise, prior, None, T)
     B, H, _ = x.shape
     s = v.integer("s", s, 1, H)
@@ -72,4 +77,4 @@ def generate_chunk(method: str, velocity_fn, obs, noise, prior, s: int, d, T: in
         return naive_sample(velocity_fn, obs, x, T, convention=convention)
     if method.startswith("inference_"):
         return guided_sample(velocity_fn, obs, x, y, w, T, max_guidance, convention=convention)
-    return rtc_sample(velocity_fn, obs, x, y, w, T, convention=convention)
+    return rtc_sample(velocity_fn, obs, x, y, w, T, convention=convention, step=step)

@@ -8,6 +8,10 @@ per example). ``convention="data_at_1"`` runs the spec's time (t_k = k / T,
 ``x <- x~ + v / T``); ``"noise_at_1"`` the flipped one natively (t'_k = 1 - k / T,
 blended time (1 - w) t', ``x <- x~ - u / T``, [V-2], [V-3]).
 
+The training-time samplers take ``step`` ([S-10]): ``"algorithm1"`` (the
+paper's, default) or ``"consistent"`` (window tokens blended once, moved by
+``(1 - w) v / T``); for weights in {0, 1} the two are bitwise equal ([S-11]).
+
 Precomputed conditioning ([PT-6]): for a ``model`` with ``time_conditioning(t)``
 and ``apply_conditioned(obs_enc, x, cond)`` (and optionally ``encode_obs(obs)``),
 the blended times of every step depend on the weights only ([S-3]), so
@@ -20,9 +24,11 @@ from __future__ import annotations
 
 import torch
 
+from softrtc.reference.sampler import STEPS, check_step
+
 from . import _validate as v
 
-__all__ = ["euler_times", "blend", "naive_sample", "rtc_sample", "step_times", "step_conditioning",
+__all__ = ["STEPS", "euler_times", "blend", "naive_sample", "rtc_sample", "step_times", "step_conditioning",
            "conditioning_table", "naive_sample_conditioned", "rtc_sample_conditioned"]
 
 
@@ -86,25 +92,46 @@ def naive_sample(velocity_fn, obs, noise, T: int, *, convention: str = "data_at_
     return (x, trace) if return_trace else x
 
 
+def _step_parts(wc, step: str):
+    """Per-token step size c and the tokens blended before every step ([S-10]); None, None for Algorithm 1."""
+    if step == "algorithm1":
+        return None, None
+    c = torch.where(wc < 1.0, 1.0 - wc, torch.ones_like(wc))  # [S-10] c = 1 - w; [S-11] c = 1 at w = 1
+    return c, (wc == 0.0) | (wc == 1.0)  # [S-10] window tokens are blended at k = 0 only
+
+
+def _carry(xb, x, again, k: int):
+    """[S-10] A window token keeps its carried state after the first step."""
+    return xb if again is None or k == 0 else torch.where(again, xb, x)
+
+
+def _scaled(vel, c):
+    """[S-4] v, or [S-10] c v; c = 1 gives v bit for bit ([S-11])."""
+    return vel if c is None else c * vel
+
+
 def rtc_sample(velocity_fn, obs, noise, prior, weights, T: int, *, convention: str = "data_at_1",
-               return_trace: bool = False):
+               return_trace: bool = False, step: str = "algorithm1"):
     """Training-time RTC: blend toward the prior, per-token time, Euler step, no final blend ([S-3]..[S-5]).
 
-    With w = 0 it is the naive sampler bitwise ([S-7]).
+    ``step`` "algorithm1" (default) or "consistent" ([S-10]). With w = 0 it is the naive sampler
+    bitwise under either step ([S-7], [S-11]).
     """
     _check_fn(velocity_fn)
+    step = check_step(step)
     x, y, w, T = check_batch(obs, noise, prior, weights, T)
     if y is None or w is None:
         raise ValueError("rtc_sample needs a prior [B, H, A] and weights [H] or [B, H], got None")
     flip = v.convention(convention) == "noise_at_1"
     wb = w.expand(x.shape[:2])
     wc = wb[..., None]
+    c, again = _step_parts(wc, step)
     trace = []
     for k in range(T):
-        xb = wc * y + (1.0 - wc) * x
+        xb = _carry(wc * y + (1.0 - wc) * x, x, again, k)
         tb = (1.0 - wb) * (1.0 - k / T) if flip else wb + (1.0 - wb) * (k / T)
         vel = v.output("velocity_fn", velocity_fn(obs, xb, tb), x)
-        nxt = xb - vel / T if flip else xb + vel / T
+        nxt = xb - _scaled(vel, c) / T if flip else xb + _scaled(vel, c) / T
         if return_trace:
             trace.append({"state": x, "blended_state": xb, "time": tb, "velocity": vel, "next_state": nxt})
         x = nxt
@@ -173,13 +200,16 @@ def naive_sample_conditioned(model, obs, noise, T: int, cond=None, *, convention
     return x
 
 
-def rtc_sample_conditioned(model, obs, noise, prior, weights, T: int, cond=None, *, convention: str = "data_at_1"):
-    """Training-time RTC with every step's time conditioning computed ahead ([S-3]..[S-5], [PT-6]).
+def rtc_sample_conditioned(model, obs, noise, prior, weights, T: int, cond=None, *, convention: str = "data_at_1",
+                           step: str = "algorithm1"):
+    """Training-time RTC with every step's time conditioning computed ahead ([S-3]..[S-5], [PT-6]; ``step``
+    [S-10]).
 
     ``cond`` (optional) is :func:`step_conditioning` of these weights, or a row of :func:`conditioning_table`.
     The blend is one fused multiply-add per step: x~ = (w Y) + (1 - w) x.
     """
     _check_model(model)
+    step = check_step(step)
     x, y, w, T = check_batch(obs, noise, prior, weights, T)
     if y is None or w is None:
         raise ValueError("rtc_sample_conditioned needs a prior and weights, got None")
@@ -191,8 +221,9 @@ def rtc_sample_conditioned(model, obs, noise, prior, weights, T: int, cond=None,
     o = _encode(model, obs)
     wc = w[..., None]
     wy, keep = wc * y, 1.0 - wc  # the prior's share is the same every step
+    c, again = _step_parts(wc.expand(x.shape[:2] + (1,)), step)
     for k in range(T):
-        xb = torch.addcmul(wy, keep, x)
-        vel = model.apply_conditioned(o, xb, _at(cond, k))
+        xb = _carry(torch.addcmul(wy, keep, x), x, again, k)
+        vel = _scaled(model.apply_conditioned(o, xb, _at(cond, k)), c)
         x = xb - vel / T if flip else xb + vel / T
     return x
