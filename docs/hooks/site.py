@@ -94,8 +94,12 @@ def on_files(files, config, **kwargs):
     _add(files, config, "conformance/vectors/index.json", path=ROOT / "conformance" / "vectors" / "index.json")
     _add(files, config, "conformance/js-port.md", path=ROOT / "conformance" / "ports" / "js" / "README.md")
     reports = third_party_reports()
-    for rel in reports:
-        _add(files, config, f"reports/thirdparty/{rel}", path=ROOT / "conformance" / "thirdparty" / rel)
+    base = ROOT / "conformance" / "thirdparty"
+    # The reports with what they link beside them (their JSON, patches, scripts).
+    for p in sorted(base.rglob("*")):
+        if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc":
+            rel = p.relative_to(base).as_posix()
+            _add(files, config, f"reports/thirdparty/{rel}", path=p)
     _add(files, config, "reports/thirdparty.md", content=_third_party_page(reports))
     tasks = sorted(p.name for p in (ROOT / "results" / "arm").iterdir() if p.is_dir())
     _add(files, config, "reports/arm-report.md", content=_arm_report(tasks))
