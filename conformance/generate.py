@@ -27,6 +27,7 @@ from .._cli_util import command_error, output_dir
 from . import FORMAT_VERSION, SPEC_VERSION, vectors_dir
 from .cases_base import REGEN_TOL, _plain
 from .cases_runtime import gen_conventions, gen_executor, gen_guidance, gen_metrics, gen_sampler, gen_velocity
+from .cases_step import gen_sampler_step
 from .cases_training import gen_corruption, gen_delays, gen_endpoints, gen_loss, gen_weights
 from .vectors_io import parse_json
 
@@ -40,6 +41,8 @@ FILES = {
     "loss": ("L", "Weighted flow-matching loss (spec/02-training.md 2.3)", gen_loss),
     "velocity": ("F", "Reference velocity field and its VJP (spec/03-inference.md 3.1)", gen_velocity),
     "sampler": ("S", "Naive and training-time RTC sampler traces (spec/03-inference.md 3.2)", gen_sampler),
+    "sampler_step": ("S", "Training-time RTC sampler with a named solver step: Algorithm 1 and the time-consistent "
+                     "step (spec/03-inference.md 3.2.1)", gen_sampler_step),
     "guidance": ("G", "Inference-time RTC guidance weights and guided-sampler traces (spec/03-inference.md 3.3)",
                  gen_guidance),
     "executor": ("X", "Prior shift and asynchronous execution (spec/04-execution.md)", gen_executor),
@@ -165,6 +168,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="regenerate into a temporary directory and compare with --out (default: the shipped "
                              "vectors) instead of writing; exit 1 unless every number agrees within "
                              f"{REGEN_TOL['abs']:g} + {REGEN_TOL['rel']:g} |x|")
+    parser.add_argument("--rollouts", action="store_true",
+                        help="write (or --check) the rollout vectors of [CR-10] instead, in the folder rollouts/ of "
+                             "--out; needs jax (closed-loop reference episodes on the arm, about a minute)")
 
 
 def _check(prog: str, out_dir) -> int:
@@ -189,9 +195,28 @@ def _check(prog: str, out_dir) -> int:
     return 0 if ok else 1
 
 
+def _rollouts(prog: str, args) -> int:
+    """`generate --rollouts [--check]` ([CR-10])."""
+    from . import rollout_vectors
+
+    if args.check:
+        diffs = rollout_vectors.check_generation(args.out)
+        for d in diffs[:20]:
+            print(f"{prog}: differs: {d}", file=sys.stderr)
+        print("rollout vectors: regeneration agrees" if not diffs else f"rollout vectors: {len(diffs)} differences")
+        return 0 if not diffs else 1
+    sizes = rollout_vectors.generate(args.out)
+    for name, size in sizes.items():
+        print(f"{name:20s} {size:>9d} bytes")
+    print(f"total {sum(sizes.values())} bytes in {rollout_vectors.rollouts_dir(args.out)}")
+    return 0
+
+
 def run_from_args(args) -> int:
     prog = getattr(args, "_prog", "softrtc conformance generate")
     try:
+        if getattr(args, "rollouts", False):
+            return _rollouts(prog, args)
         if getattr(args, "check", False):
             return _check(prog, args.out)
         sizes = generate(args.out)

@@ -138,7 +138,7 @@ class Checker:
         self.reference = ReferenceRollout()
         self.cases: list = []
 
-    def check(self, ep: Episode, c: int, tick: int, args: dict, got: dict) -> tuple:
+    def check(self, ep: Episode, c: int, tick, args: dict, got: dict) -> tuple:
         """Append the chunk and executed cases of request ``c``; returns (executed passed, worst, message)."""
         first = args["prev"] is None
         want = self.reference.rollout_chunk(self.field, **args)
@@ -164,7 +164,8 @@ class Checker:
                         msg += f"; diagnosis [{diag[0]}]: matches the reference with {diag[1]}"
                 if out == "chunk":
                     chunk_reqs = reqs
-            msg = f"tick {tick}, d = {args['d']}, arrival {args['arrival']}: {msg}" if msg else ""
+            where = "" if tick is None else f"tick {tick}, "
+            msg = f"{where}d = {args['d']}, arrival {args['arrival']}: {msg}" if msg else ""
             self.cases.append(CaseResult(f"{base}.{out}", f"rollout_{ep.method}", "rollout_chunk", reqs, status,
                                          worst, msg, time.perf_counter() - t0))
             results.append((status, worst, msg))

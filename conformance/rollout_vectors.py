@@ -1,0 +1,223 @@
+"""Rollout vectors: the requests of real closed-loop reference episodes, replayed open loop ([CR-10]).
+
+    softrtc conformance generate --rollouts [--out DIR]     writes DIR/rollouts/ (rollouts_arm.json, index.json)
+    softrtc conformance rollout --impl X --vectors [DIR]     replays them against an implementation
+
+The generator runs the reference in closed loop on the arm and records, for
+the first :data:`REQUESTS` requests of :data:`EPISODES` episodes of each method
+of :data:`METHODS`, the request's arguments and the reference's chunk and
+executed actions. Replaying gives every implementation the recorded inputs,
+so it is compared request by request without divergence compounding, on the
+served field of [CR-3] (the file names the checkpoint and its SHA-256; a
+replay with another checkpoint is refused).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import SPEC_VERSION, vectors_dir
+from .results import CaseResult, RunResult
+from .rollout_diagnose import TOL
+from .rollout_loop import EXEC_REQS, Checker, Episode, Settings, chunk_requirements, run_episode
+from .runner import CaseFailure, compare
+from .vectors_io import parse_json
+
+ROLLOUT_VECTOR_FORMAT = "1.0"
+FILE = "rollouts_arm.json"
+METHODS = ("naive", "train_hard", "train_soft", "inference_hard", "inference_soft")
+EPISODES = 2
+REQUESTS = 20
+ARGS = ("obs", "prev", "noise", "method", "s", "d", "arrival", "T", "window", "max_guidance")
+
+
+def rollouts_dir(base=None) -> Path:
+    """The folder of the rollout vectors: ``rollouts/`` inside the vector folder ([CR-10])."""
+    return (vectors_dir() if base is None else Path(base)) / "rollouts"
+
+
+def _dumps(obj) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+
+
+def _plain(v):
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return v
+
+
+def _checkpoint_rel(path: str) -> str:
+    return "softrtc/arm/checkpoints/" + path.replace("\\", "/").split("softrtc/arm/checkpoints/")[-1]
+
+
+def record_cases(field, world) -> list:
+    """The cases of the rollout vectors: closed-loop reference episodes, first REQUESTS requests each."""
+    from .rollout_impls import ReferenceRollout
+
+    ref = ReferenceRollout()
+    settings = Settings(METHODS, EPISODES, (0, 1, 2, 3, 4, 5), REQUESTS * field.s, seed=7)
+    cases = []
+    for method in METHODS:
+        for i in range(EPISODES):
+            def answer(c, args, method=method, i=i):
+                out = ref.rollout_chunk(field, **args)
+                reqs = chunk_requirements(method, args["prev"] is None) + [r for r in EXEC_REQS if r != "CR-2"]
+                cases.append({"id": f"CR.arm.{method}.ep{i:03d}.r{c:03d}", "function": "rollout_chunk",
+                              "requirements": ["CR-10"] + reqs, "tolerance": dict(TOL),
+                              "args": {k: _plain(args[k]) for k in ARGS},
+                              "expected": {k: _plain(out[k]) for k in ("chunk", "executed")}})
+                return out
+            run_episode(answer, field, world, settings, method, i)
+    return cases
+
+
+def generate(out_dir=None, checkpoint=None) -> dict:
+    """Write ``rollouts_arm.json`` and its ``index.json`` into ``rollouts_dir(out_dir)``; {file: bytes}."""
+    from .rollout_field import ArmWorld, ServedField
+
+    field = ServedField(checkpoint)
+    world = ArmWorld(field, max_steps=REQUESTS * field.s)
+    cases = record_cases(field, world)
+    digest = hashlib.sha256(Path(field.checkpoint).read_bytes()).hexdigest()
+    header = {"format_version": ROLLOUT_VECTOR_FORMAT, "spec_version": SPEC_VERSION, "chapter": "CR",
+              "title": "Rollout requests of closed-loop reference episodes on the arm (spec/42-rollouts.md)",
+              "generator": "softrtc.conformance.rollout_vectors", "reference": "softrtc.reference",
+              "env": "arm", "task": "drift", "checkpoint": _checkpoint_rel(field.checkpoint),
+              "checkpoint_sha256": digest, "episodes": EPISODES, "requests": REQUESTS, "methods": list(METHODS)}
+    lines = ["{"] + [f"{_dumps(k)}:{_dumps(header[k])}," for k in sorted(header)] + ['"cases":[']
+    lines.append(",\n".join(_dumps(c) for c in cases))
+    lines.append("]}")
+    text = "\n".join(lines) + "\n"
+    out = rollouts_dir(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / FILE).write_text(text, encoding="ascii")
+    index = {"format_version": ROLLOUT_VECTOR_FORMAT, "spec_version": SPEC_VERSION,
+             "files": {FILE: {"chapter": "CR", "cases": len(cases),
+                              "sha256": hashlib.sha256(text.encode("ascii")).hexdigest()}}}
+    idx = _dumps(index) + "\n"
+    (out / "index.json").write_text(idx, encoding="ascii")
+    return {FILE: len(text), "index.json": len(idx)}
+
+
+def load(folder=None) -> tuple:
+    """``(header, cases)`` of the rollout vectors in ``folder`` (default the shipped ones), checked against
+    ``index.json`` (digest, case count, format) before any case is read ([CR-10], as [CF-25])."""
+    folder = rollouts_dir() if folder is None else Path(folder)
+    if (folder / "rollouts").is_dir() and not (folder / FILE).is_file():
+        folder = folder / "rollouts"
+    try:
+        index = parse_json((folder / "index.json").read_text(encoding="utf-8"))
+        raw = (folder / FILE).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"cannot read the rollout vectors in {folder}: {exc}") from None
+    entry = index.get("files", {}).get(FILE) if isinstance(index, dict) else None
+    if not isinstance(entry, dict) or entry.get("sha256") != hashlib.sha256(raw).hexdigest():
+        raise ValueError(f"{folder / FILE} does not match the SHA-256 listed in {folder / 'index.json'}")
+    doc = parse_json(raw.decode("ascii"))
+    if str(doc.get("format_version", "")).split(".")[0] != ROLLOUT_VECTOR_FORMAT.split(".")[0]:
+        raise ValueError(f"{folder / FILE} has format_version {doc.get('format_version')!r}; this runner reads "
+                         f"{ROLLOUT_VECTOR_FORMAT}")
+    cases = doc.get("cases")
+    if not isinstance(cases, list) or len(cases) != entry.get("cases"):
+        raise ValueError(f"{folder / FILE} does not hold the {entry.get('cases')} cases index.json lists")
+    for c in cases:
+        if not isinstance(c, dict) or set(c.get("args", {})) != set(ARGS) \
+                or set(c.get("expected", {})) != {"chunk", "executed"}:
+            raise ValueError(f"{folder / FILE}: case {c.get('id') if isinstance(c, dict) else c!r} lacks the "
+                             f"arguments {ARGS} or the outputs chunk, executed")
+    return doc, cases
+
+
+def _args(case: dict) -> dict:
+    a = dict(case["args"])
+    for k in ("obs", "prev", "noise"):
+        if a[k] is not None:
+            a[k] = np.asarray(a[k], np.float64)
+    return a
+
+
+def replay(impl=None, *, impl_cmd=None, vectors_dir=None, in_process: bool = False, timeout: float = 60.0) -> dict:
+    """Every recorded request against an implementation, open loop ([CR-10]); {"result": RunResult}."""
+    from .rollout import open_impl
+    from .rollout_field import ServedField
+
+    header, cases = load(vectors_dir)
+    field = ServedField()
+    if hashlib.sha256(Path(field.checkpoint).read_bytes()).hexdigest() != header.get("checkpoint_sha256"):
+        raise ValueError(f"the served checkpoint {field.checkpoint} is not the one the rollout vectors were "
+                         f"recorded with ({header.get('checkpoint')}, SHA-256 {header.get('checkpoint_sha256')})")
+    t0 = time.perf_counter()
+    under = open_impl(impl, impl_cmd, field, in_process, timeout)
+    checker = Checker(field, "vectors")
+    out = []
+    try:
+        for n, case in enumerate(cases):
+            args = _args(case)
+            ep = Episode(args["method"], 0, 0)
+            t1 = time.perf_counter()
+            try:
+                got = under.answer(n, args)
+            except NotImplementedError as exc:
+                out.append(CaseResult(case["id"], FILE, "rollout_chunk", case["requirements"], "unsupported", 0.0,
+                                      f"unsupported case: {exc}"))
+                continue
+            except Exception as exc:  # noqa: BLE001 - the implementation's failure is the case's
+                out.append(CaseResult(case["id"], FILE, "rollout_chunk", case["requirements"], "fail", float("inf"),
+                                      f"{type(exc).__name__}: {str(exc)[:300]}"))
+                continue
+            out.append(_judge(case, got, checker, ep, args, time.perf_counter() - t1))
+    finally:
+        under.close()
+    res = RunResult(impl if impl is not None else impl_cmd, under.name, under.time_convention,
+                    str(header.get("format_version")), [str(header.get("spec_version"))], out,
+                    time.perf_counter() - t0, under.isolation)
+    return {"result": res}
+
+
+def _judge(case: dict, got, checker, ep, args, seconds: float) -> CaseResult:
+    """One replayed request: both outputs within the case's tolerance; a failure is diagnosed ([CR-9])."""
+    worst, msgs, reqs = 0.0, [], list(case["requirements"])
+    try:
+        for key in ("chunk", "executed"):
+            worst = max(worst, compare(key, got[key], case["expected"][key], case["tolerance"]))
+    except (CaseFailure, KeyError, TypeError) as exc:
+        ratio = getattr(exc, "ratio", float("inf"))
+        if isinstance(got, dict) and "chunk" in got and "executed" in got:
+            checker.cases = []
+            checker.check(ep, 0, None, args, {k: np.asarray(got[k], np.float64) for k in ("chunk", "executed")})
+            bad = [c for c in checker.cases if c.status == "fail"]
+            if bad:
+                reqs = ["CR-10"] + [r for c in bad for r in c.requirements if r != "CR-10"]
+                msgs = [c.message for c in bad]
+        return CaseResult(case["id"], FILE, "rollout_chunk", sorted(set(reqs), key=reqs.index), "fail", ratio,
+                          "; ".join(msgs) or str(exc), seconds)
+    return CaseResult(case["id"], FILE, "rollout_chunk", reqs, "pass", worst, "", seconds)
+
+
+def check_generation(out_dir=None) -> list:
+    """Differences between the shipped rollout vectors and a regeneration beyond 1e-9 (or in structure)."""
+    import tempfile
+
+    _, want = load(out_dir)
+    with tempfile.TemporaryDirectory() as tmp:
+        generate(tmp)
+        _, got = load(tmp)
+    if [c["id"] for c in got] != [c["id"] for c in want]:
+        return ["the regenerated cases are not the shipped ones (ids differ)"]
+    diffs = []
+    for g, w in zip(got, want):
+        for part in ("args", "expected"):
+            for k, v in w[part].items():
+                if isinstance(v, list) and np.max(np.abs(np.asarray(g[part][k]) - np.asarray(v)), initial=0) > 1e-9:
+                    diffs.append(f"{w['id']} {part}.{k}")
+    return diffs
+
+
+__all__ = ["generate", "load", "replay", "rollouts_dir", "check_generation"]
