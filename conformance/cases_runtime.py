@@ -11,6 +11,7 @@ from softrtc.reference.weights import SoftWindow
 from softrtc.reference import endpoints
 
 from .cases_base import TOL_ARITH, TOL_COPY, TOL_TRACE, TOL_WEIGHTS, _Cases
+from .cases_margins import margins_executor, margins_guidance, margins_metrics, margins_sampler
 from .cases_training import _training_weights
 
 # ---------------------------------------------------------------- chapter F / S / G
@@ -115,6 +116,7 @@ def gen_sampler() -> tuple[_Cases, dict]:
     c.add("S.method_weights.h4.default-window-unused", "method_weights", ["S-6", "S-8"], TOL_WEIGHTS,
           {"method": "train_hard", "H": 4, "s": 2, "d": 1, "window": None},
           {"weights": methods.method_weights("train_hard", 4, 2, 1)})
+    margins_sampler(c)
     return c, {"fields": _field_header()}
 
 
@@ -180,6 +182,7 @@ def gen_guidance() -> tuple[_Cases, dict]:
             {"t": [0.25, 0.5], "max_guidance": 5.0})
     c.error("G.guidance_weight.reject.zero-max-guidance", "guidance_weight", ["G-4", "N-12", "N-7"],
             {"t": 0.5, "max_guidance": 0.0})
+    margins_guidance(c, fields, _guidance)
     return c, {"fields": _field_header()}
 
 
@@ -206,6 +209,7 @@ def gen_executor() -> _Cases:
         c.error(f"X.execute_chunks.reject.{tag}", "execute_chunks", ["X-1", "N-7"] + (["X-2"] if tag == "first-nonzero"
                                                                                       else []),
                 {"chunks": chunks, "delays": ds, "s": s})
+    margins_executor(c)
     return c
 
 
@@ -263,6 +267,7 @@ def gen_metrics() -> _Cases:
                      ("index-n", [[0, 1, 3]])):
         c.error(f"M.bootstrap_interval.reject.{tag}", "bootstrap_interval", ["M-5", "CF-34", "N-7"],
                 {"values": vals, "indices": idx, "confidence": 0.9})
+    margins_metrics(c)
     return c
 
 

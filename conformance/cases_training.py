@@ -12,6 +12,7 @@ from softrtc.reference import corruption, delays, endpoints, loss, weights
 from softrtc.reference.weights import SoftWindow
 
 from .cases_base import TOL_ARITH, TOL_EXACT, TOL_WEIGHTS, _Cases, _rule_id
+from .cases_margins import margins_delays, margins_endpoints, margins_loss, margins_weights
 
 HORIZONS = (4, 8, 10, 16, 50)
 LAMS = (0.5, 1.0, 1.5, 2.0, 3.0, 4.0)
@@ -91,6 +92,7 @@ def gen_endpoints() -> _Cases:
     for rule in (endpoints.offset(3, 8), endpoints.fixed(5)):
         c.add(f"E.endpoint.{rule.kind}.d0", "endpoint", ["E-3" if rule.kind == "offset" else "E-4", "E-6"],
               TOL_EXACT, {"rule": rule.to_dict(), "d": 0}, {"e": 0})
+    margins_endpoints(c)
     return c
 
 
@@ -183,6 +185,7 @@ def gen_weights() -> _Cases:
     c.add("W.prefix_weights.H4096.d4093.e4096.exp.paper", "prefix_weights", ["W-1", "W-3", "W-5", "N-12"],
           TOL_WEIGHTS, {"H": 4096, "d": 4093, "e": 4096, "schedule": "exp", "parametrization": "paper"},
           {"weights": weights.prefix_weights(4096, 4093, 4096, "exp", "paper")})
+    margins_weights(c)
     return c
 
 
@@ -250,6 +253,7 @@ def gen_delays() -> _Cases:
     c.add("D.delay_probs.integer-decay", "delay_probs", ["D-2", "CF-34"], TOL_WEIGHTS,
           {"dist": "exponential", "d_min": 0, "d_max": 3, "decay": 1},
           {"probs": delays.delay_probs("exponential", 0, 3, 1.0)})
+    margins_delays(c)
     return c
 
 
@@ -312,4 +316,5 @@ def gen_loss() -> _Cases:
     c.add("L.loss.non-monotonic-weights", "loss", ["L-2", "CF-34"], TOL_ARITH,
           {"pred": pred, "actions": acts, "noise": noise, "weights": w},
           {"loss": loss.flow_matching_loss(pred, acts, noise, w)})
+    margins_loss(c)
     return c

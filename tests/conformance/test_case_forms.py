@@ -81,7 +81,8 @@ def test_guided_cases_carry_the_window_that_defines_w(vector_files):
         np.testing.assert_allclose(a["weights"], prefix_weights(g["H"], g["d"], g["end"], g["schedule"], "rtc"),
                                    rtol=1e-14, atol=0)
     assert {c["args"]["guidance"]["variant"] for c in cases} == {"hard", "soft"}
-    assert {c["args"]["max_guidance"] for c in cases} == {5.0, 2.0}
+    assert {5.0, 2.0} <= {c["args"]["max_guidance"] for c in cases}
+    assert sum(c["args"]["max_guidance"] != 5.0 for c in cases) >= 3  # a cap other than the default, thrice
 
 
 def test_window_form_runs_guided_cases(vector_files):
