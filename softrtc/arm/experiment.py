@@ -34,6 +34,7 @@ import numpy as np
 from softrtc._machine import cpu_model
 from softrtc.reference import endpoints as rep
 from softrtc.reference import weights as rw
+from softrtc.reference._validate import check_int
 from softrtc.reference.methods import check_method_step
 
 from .tasks import ArmTask, get_task
@@ -62,7 +63,8 @@ class Row:
     objectives); ``sampler`` a method of [S-6]; ``sampler_window`` the
     window a ``train_soft`` sampler runs with (default: ``window``);
     ``step`` the training-time sampler's solver step ([S-10], default
-    Algorithm 1's).
+    Algorithm 1's); ``num_steps`` the Euler steps T of every chunk (default
+    the arm policies' 5, [A-17]; the T sweep of [AX-10] varies it).
     """
 
     name: str
@@ -74,13 +76,21 @@ class Row:
     tier: str = "main"
     origin: str = "paper"
     step: str = "algorithm1"
+    num_steps: int = 5
 
     def __post_init__(self):
         check_method_step(self.sampler, self.step)
+        check_int("num_steps", self.num_steps, 1, 64)
 
     @property
     def infer_window(self):
         return self.sampler_window if self.sampler_window is not None else self.window
+
+
+# [AX-10] Euler step counts of the T sweep besides the main rows' T = 5, and the rows it compares at each.
+TSWEEP_STEPS = (10, 20)
+TIERS = ("main", "sweep", "tsweep")
+TSWEEP_ROWS = ("soft2_clip", "soft2_clip_consistent", "train_hard")
 
 
 def _soft(name, label, window, tier="sweep", origin="paper"):
@@ -105,7 +115,20 @@ def rows_for(task: ArmTask) -> list:
             DEFAULT_WINDOW, tier="main", origin="cross"),
         Row("soft2_clip_prior_noise", "Soft lam 2 (clip) + noisy-prior training (project variant)", "train_soft",
             "prior_noise", DEFAULT_WINDOW, tier="main", origin="project"),
+        # The time-consistent solver step ([S-10]) on the same checkpoints ([AX-10]).
+        Row("soft2_clip_consistent", "Train Soft RTC lam 2 (clip), consistent step", "train_soft", "soft",
+            DEFAULT_WINDOW, tier="main", origin="spec", step="consistent"),
+        Row("hard_soft_sampler_consistent", "Hard weights, soft lam 2 (clip) sampler, consistent step", "train_soft",
+            "hard", None, DEFAULT_WINDOW, tier="main", origin="cross", step="consistent"),
     ]
+    # T sweep ([AX-10]): Algorithm 1, the consistent step and Hard at T = 10, 20 (T = 5 is the main rows').
+    for T in TSWEEP_STEPS:
+        rows += [Row(f"t{T}_soft2_clip", f"T = {T}: Soft lam 2 (clip), Algorithm 1", "train_soft", "soft",
+                     DEFAULT_WINDOW, tier="tsweep", origin="spec", num_steps=T),
+                 Row(f"t{T}_soft2_clip_consistent", f"T = {T}: Soft lam 2 (clip), consistent step", "train_soft",
+                     "soft", DEFAULT_WINDOW, tier="tsweep", origin="spec", step="consistent", num_steps=T),
+                 Row(f"t{T}_train_hard", f"T = {T}: Train Hard RTC", "train_hard", "hard", tier="tsweep",
+                     origin="spec", num_steps=T)]
     for lam in (1, 3, 4):
         for ov, f in (("clip", clip), ("zeros", zeros)):
             rows.append(_soft(f"soft{lam}_{ov}", f"Soft lam {lam} ({ov})", f(ds(float(lam), 5))))
@@ -167,7 +190,9 @@ def eval_key(row: Row, task: ArmTask) -> str:
     Algorithm 1's step (every committed cell) are those they had before steps could be chosen."""
     ident = (train_key(row, task), _sampler_table(row, task))
     step = _sampler_step(row, task)
-    raw = repr(ident if step == "algorithm1" else ident + (step,)).encode()
+    ident = ident if step == "algorithm1" else ident + (step,)
+    # T enters the key only when it is not the arm policies' 5, so every T = 5 row keeps its key ([AX-10]).
+    raw = repr(ident if row.num_steps == 5 else ident + (("T", row.num_steps),)).encode()
     return hashlib.sha256(raw).hexdigest()[:16]
 
 
@@ -187,9 +212,20 @@ class Budget:
     sweep_rows: tuple | None = None
 
     def delays(self, task: ArmTask, tier: str) -> list:
-        if tier == "main":
-            return list(range(task.max_delay + 1))
-        return [0, task.max_delay - 1, task.max_delay]
+        return tier_delays(task.max_delay, tier)
+
+    def seeds_episodes(self, tier: str) -> tuple:
+        """Fine-tuning seeds and episodes per cell of a tier (the T sweep takes the sweep tier's, [AX-10])."""
+        return (self.main_seeds, self.main_episodes) if tier == "main" else (self.sweep_seeds, self.sweep_episodes)
+
+
+def tier_delays(max_delay: int, tier: str) -> list:
+    """Delays a tier runs: every executable delay (main), 0 and the two highest (sweep), 0, 2, 4 (T sweep)."""
+    if tier == "main":
+        return list(range(max_delay + 1))
+    if tier == "tsweep":
+        return [d for d in (0, 2, 4) if d <= max_delay]
+    return [0, max_delay - 1, max_delay]
 
 
 BUDGETS = {
@@ -247,13 +283,14 @@ def read_episodes(path) -> list:
 # --------------------------------------------------------------------------- policies
 
 
-def _arm_policy(model, normalizer, task: ArmTask, sampler: str, window, step: str = "algorithm1"):
+def _arm_policy(model, normalizer, task: ArmTask, sampler: str, window, step: str = "algorithm1",
+                num_steps: int = 5):
     from softrtc.jax.weights import from_reference
 
     from .policies import ArmPolicy
     from .policy_config import ArmPolicyConfig
 
-    cfg = ArmPolicyConfig(execute_horizon=task.execute_horizon)
+    cfg = ArmPolicyConfig(execute_horizon=task.execute_horizon, num_steps=num_steps)
     return ArmPolicy(model, normalizer, cfg, sampler, window=None if window is None else from_reference(window),
                      env_config=task.env_config, step=step)
 
@@ -263,7 +300,7 @@ def _load(path, task: ArmTask, row: Row):
 
     base = load_arm_checkpoint(path)
     return _arm_policy(base.model, base.normalizer, task, row.sampler,
-                       row.infer_window if row.sampler == "train_soft" else None, row.step)
+                       row.infer_window if row.sampler == "train_soft" else None, row.step, row.num_steps)
 
 
 def _run_cell(args) -> tuple:
@@ -390,16 +427,102 @@ def _finetune(key: str, row: Row, task: ArmTask, seed: int, budget: Budget, data
             "window": None if row.window is None or key == "hard" else row.window.to_dict()}
 
 
+# --------------------------------------------------------------------------- recomputed fine-tunes
+
+# [AX-11] Episodes a recomputed fine-tune replays from a committed cell before its new cells may run.
+REPLAY_EPISODES = 10
+
+
+def _finite(x):
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def _by_finetune(todo) -> dict:
+    """``{(train key, seed): [cell args]}`` of the cells to run that need a fine-tuned checkpoint."""
+    out = {}
+    for (r, sd, key, args) in todo:
+        if key is not None:
+            out.setdefault((key, sd), []).append(args)
+    return out
+
+
+def _check_recorded(out_dir: Path, task: ArmTask, budget: Budget, key: str, sd: int, cells, seed0: int,
+                    key_seed: int, log) -> None:
+    """A checkpoint whose digest differs from the one its folder records may only start new cells ([AX-11]).
+
+    Another CPU model (or BLAS build) gives a fine-tune that differs in the last bits ([AX-9]). Its new
+    cells are then compared with the folder's cells of the recorded checkpoint, so before they run the
+    checkpoint replays the first ``REPLAY_EPISODES`` episodes of a committed cell of the same fine-tune
+    (a row with Algorithm 1's sampler, highest delay): every episode must end with the same success and
+    the same number of steps, else the run stops. The replay is recorded in
+    ``finetunes/<tag>.recomputed.json``. A partly written cell of such a checkpoint is refused, since
+    extending it would mix two policies in one cell.
+    """
+    tag = f"{key}_seed{sd}"
+    rec_path = out_dir / "finetunes" / f"{tag}.json"
+    ckpt = Path(cells[0][0])
+    if not rec_path.is_file() or not ckpt.is_file():
+        return
+    digest = hashlib.sha256(ckpt.read_bytes()).hexdigest()[:16]
+    recorded = json.loads(rec_path.read_text())["sha256_16"]
+    if digest == recorded:
+        return
+    partial = [Path(c[-1]).name for c in cells if Path(c[-1]).is_file()]
+    if partial:
+        raise ValueError(f"fine-tune {tag} is checkpoint {digest}, but {rec_path} records {recorded}: its cells "
+                         f"{partial} came from the recorded one; extending them would mix two policies; use "
+                         "another --out")
+    done_path = out_dir / "finetunes" / f"{tag}.recomputed.json"
+    if done_path.is_file() and json.loads(done_path.read_text()).get("sha256_16") == digest:
+        return
+    import jax
+
+    from .executor import episode_metrics, run_simulated_episode
+    from softrtc._machine import cpu_model
+
+    ep_dir = out_dir / "episodes"
+    d = task.max_delay
+    ref = next((r for r in rows_for(task) if train_key(r, task) == key and r.step == "algorithm1"
+                and r.num_steps == 5 and (ep_dir / f"{eval_key(r, task)}_s{sd}_d{d}.csv").is_file()), None)
+    if ref is None:
+        raise ValueError(f"fine-tune {tag} is checkpoint {digest}, but {rec_path} records {recorded}, and no "
+                         f"committed cell of it at d = {d} can be replayed to compare them; use another --out")
+    old = read_episodes(ep_dir / f"{eval_key(ref, task)}_s{sd}_d{d}.csv")[:REPLAY_EPISODES]
+    policy = _load(ckpt, task, ref)
+    log(f"[{task.name}] fine-tune {tag}: checkpoint {digest} differs from the recorded {recorded}; replaying "
+        f"{len(old)} episodes of `{ref.name}` at d = {d}")
+    replay = []
+    for e in old:
+        i = e["episode"]
+        rec = run_simulated_episode(policy, seed0 + i, d, jax.random.fold_in(jax.random.key(key_seed), i),
+                                    max_steps=budget.max_steps, env_config=task.env_config)
+        m = episode_metrics(rec)
+        replay.append({"episode": i, "success": [e["success"], int(m["success"])], "steps": [e["steps"], rec.steps],
+                       "D2": [_finite(e["D2"]), _finite(m["D2"])]})
+    same = sum(r["success"][0] == r["success"][1] and r["steps"][0] == r["steps"][1] for r in replay)
+    out = {"key": key, "seed": sd, "sha256_16": digest, "recorded_sha256_16": recorded, "cpu_model": cpu_model(),
+           "replayed_row": ref.name, "delay": d, "episodes": len(replay), "same_success_and_steps": same,
+           "max_abs_D2_difference": max((abs(r["D2"][0] - r["D2"][1]) for r in replay
+                                         if None not in r["D2"]), default=None), "replay": replay}
+    if same != len(replay):
+        raise ValueError(f"fine-tune {tag}: checkpoint {digest} replays {same} of {len(replay)} committed episodes "
+                         f"of `{ref.name}` with the same success and steps; its cells would not be comparable with "
+                         "the folder's; use another --out")
+    from softrtc._files import write_json
+    write_json(done_path, out)
+
+
 # --------------------------------------------------------------------------- driver
 
 
 def run_experiment(task_name: str = "drift", budget_name: str = "full", out="results/arm", work="arm_experiment_work",
-                   rows=None, delays=None, seeds=None, tiers=("main", "sweep"), workers: int = 2,
+                   rows=None, delays=None, seeds=None, tiers=("main", "sweep", "tsweep"), workers: int = 2,
                    episodes: int | None = None, seed0: int = 10_000, key_seed: int = 0, log=print) -> dict:
     """Run (or resume) the experiment of ``task_name`` under a budget; returns a summary of what ran.
 
     ``rows`` restricts to named rows, ``delays`` to some delays, ``seeds`` to
-    some fine-tuning seeds (1-based indices), ``tiers`` to ``main`` and/or
+    some fine-tuning seeds (1-based indices), ``tiers`` to ``main``, ``tsweep`` and/or
     ``sweep``; ``episodes`` caps the episodes per cell below the budget's (a
     later run with more extends the cells). Complete cells are never recomputed.
     """
@@ -430,9 +553,9 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
                                  for sd in seeds):
         raise ValueError(f"seeds must be integers in [1, {n_seeds}] (the {budget_name} budget's fine-tuning "
                          f"seeds), got {seeds}")
-    bad_tiers = [t for t in tiers if t not in ("main", "sweep")]
+    bad_tiers = [t for t in tiers if t not in TIERS]
     if bad_tiers:
-        raise ValueError(f"tiers must be among ('main', 'sweep'), got {bad_tiers}")
+        raise ValueError(f"tiers must be among {TIERS}, got {bad_tiers}")
     selected = [r for r in all_rows if (rows is None or r.name in rows) and r.tier in tiers
                 and (r.tier == "main" or budget.sweep_rows is None or r.name in budget.sweep_rows)]
     out_dir = Path(out) / task.name
@@ -481,13 +604,13 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
     jobs = []
     for r in selected:
         key = train_key(r, task)
-        n_seeds = budget.main_seeds if r.tier == "main" else budget.sweep_seeds
+        n_seeds = budget.seeds_episodes(r.tier)[0]
         seed_list = list(range(1, n_seeds + 1)) if key is not None else [0]
         if seeds is not None:
             seed_list = [s for s in seed_list if s in seeds or key is None]
         for sd in seed_list:
             ckpt = base_path if key is None else work_dir / f"{key}_seed{sd}.npz"
-            n_eps = budget.main_episodes if r.tier == "main" else budget.sweep_episodes
+            n_eps = budget.seeds_episodes(r.tier)[1]
             n_eps = n_eps if episodes is None else min(n_eps, episodes)
             for d in budget.delays(task, r.tier):
                 if delays is not None and d not in delays:
@@ -526,6 +649,8 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
                              "another checkpoint; use another --out")
         rec_path.parent.mkdir(exist_ok=True)
         rec_path.write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
+    for (key, sd), cells in sorted(_by_finetune(todo).items()):
+        _check_recorded(out_dir, task, budget, key, sd, cells, seed0, key_seed, log)
     todo = [args for (_, _, _, args) in todo]
     log(f"[{task.name}] {len(jobs)} cells, {len(todo)} to run with {workers} worker(s)")
     t0 = time.perf_counter()

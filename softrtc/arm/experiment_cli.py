@@ -5,14 +5,14 @@ from __future__ import annotations
 import argparse
 import time
 
-from .._cli_util import comma_list, int_in, output_dir
+from .._cli_util import command_error, comma_list, int_in, missing_extra, output_dir
 
 __all__ = ["add_experiment_parsers"]
 
 
 def _tier(text: str) -> str:
-    if text not in ("main", "sweep"):
-        raise argparse.ArgumentTypeError(f"tier must be main or sweep, got {text!r}")
+    if text not in ("main", "sweep", "tsweep"):
+        raise argparse.ArgumentTypeError(f"tier must be main, sweep or tsweep, got {text!r}")
     return text
 
 
@@ -29,8 +29,8 @@ def add_experiment_parsers(sub) -> None:
     ex.add_argument("--work", type=output_dir(), default="arm_experiment_work",
                     help="folder for demos and fine-tuned checkpoints (default ./arm_experiment_work)")
     ex.add_argument("--rows", type=comma_list("row"), default=None, help="only these rows (comma-separated)")
-    ex.add_argument("--tiers", type=comma_list("tier", _tier), default=["main", "sweep"],
-                    help="main and/or sweep (default both)")
+    ex.add_argument("--tiers", type=comma_list("tier", _tier), default=["main", "sweep", "tsweep"],
+                    help="main, sweep (window sweeps) and/or tsweep (the Euler-step sweep); default all three")
     # ASCII digits only ([N-11]): int() would read '١' as 1. The task's own range is checked by run_experiment
     # before any work; here the bound is the largest delay of any task.
     max_delay = max(t.max_delay for t in TASKS.values())
@@ -62,6 +62,9 @@ def add_experiment_parsers(sub) -> None:
 
 
 def _experiment(args) -> int:
+    hint = missing_extra("tqdm", "matplotlib") if args.report else missing_extra("tqdm")  # [N-13]
+    if hint:
+        return command_error(args._prog, hint)
     from .experiment import run_experiment
 
     t0 = time.perf_counter()
@@ -92,6 +95,9 @@ def _screen(args) -> int:
 
 
 def _report(args) -> int:
+    hint = None if args.no_plots else missing_extra("matplotlib")  # [N-13] before any file is written
+    if hint:
+        return command_error(args._prog, f"{hint} (or run with --no-plots)")
     from .report import write_report
 
     print(write_report(args.results, readme=args.readme, readme_task=args.readme_task, plots=not args.no_plots))
