@@ -1,6 +1,7 @@
 # Two entry points that do all set-up on a fresh machine:
 #   make demo   creates .venv, installs softrtc with every extra, runs the main job
 #   make test   creates .venv, installs (LeRobot's RTC modules too), runs the whole test suite on two workers
+#   make docs   builds the documentation site into site/
 PYTHON ?= python3.11
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -27,6 +28,20 @@ $(LEROBOT_STAMP): $(STAMP)
 	touch $(LEROBOT_STAMP)
 
 venv: $(STAMP)
+
+# The documentation site (mkdocs.yml, sources under docs/ and spec/) into site/; `make test` builds it again
+# with warnings as errors and opens it in headless Chromium (tests/docs/). A fresh Debian machine lacks
+# Chromium: it is installed here with apt-get, which needs root (elsewhere, install the package `chromium`).
+.PHONY: docs
+CHROMIUM := /usr/bin/chromium
+
+$(CHROMIUM):
+	apt-get update && apt-get install -y chromium
+
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --site-dir site
+
+test: $(CHROMIUM)
 
 demo: $(STAMP)
 	$(VENV)/bin/softrtc demo

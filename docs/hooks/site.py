@@ -91,7 +91,9 @@ def on_files(files, config, **kwargs):
     _add(files, config, "conformance/vectors.md", content=si.render_vectors_page(index, header))
     for name in index.vector_totals:
         _add(files, config, f"conformance/vectors/{name}", path=ROOT / "conformance" / "vectors" / name)
-    _add(files, config, "conformance/vectors/index.json", path=ROOT / "conformance" / "vectors" / "index.json")
+    for p in sorted((ROOT / "conformance" / "vectors").rglob("index.json")):
+        rel = p.relative_to(ROOT / "conformance" / "vectors").as_posix()
+        _add(files, config, f"conformance/vectors/{rel}", path=p)
     _add(files, config, "conformance/js-port.md", path=ROOT / "conformance" / "ports" / "js" / "README.md")
     reports = third_party_reports()
     base = ROOT / "conformance" / "thirdparty"

@@ -132,7 +132,7 @@ def collect_citations(root: Path, tops, known: set) -> dict:
 
 
 def vector_counts(root: Path) -> tuple:
-    """(id -> {vector file: cases naming it}, {file: total cases}) from conformance/vectors/*.json.
+    """(id -> {vector file: cases naming it}, {file: total cases}) from conformance/vectors/**/*.json.
 
     A file must be a JSON object with a list ``cases`` whose entries carry a list ``requirements``
     ([CF-1]); anything else is an error naming the file, not a silently smaller count.
@@ -140,21 +140,23 @@ def vector_counts(root: Path) -> tuple:
     per_id: dict = {}
     totals: dict = {}
     vdir = Path(root) / "conformance" / "vectors"
-    for f in sorted(vdir.glob("*.json")):
+    # Sub-folders (the rollout vectors) hold files of the same form, named by their path from vectors/.
+    for f in sorted(vdir.rglob("*.json")):
         if f.name == "index.json":
             continue
+        name = f.relative_to(vdir).as_posix()
         doc = json.loads(f.read_text(encoding="utf-8"))
         cases = doc.get("cases") if isinstance(doc, dict) else None
         if not isinstance(cases, list):
-            raise ValueError(f"vector file {f.name} must hold a list 'cases'")
-        totals[f.name] = len(cases)
+            raise ValueError(f"vector file {name} must hold a list 'cases'")
+        totals[name] = len(cases)
         for case in cases:
             reqs = case.get("requirements") if isinstance(case, dict) else None
             if not isinstance(reqs, list):
-                raise ValueError(f"every case of {f.name} must carry a list 'requirements'")
+                raise ValueError(f"every case of {name} must carry a list 'requirements'")
             for r in set(reqs):
-                per_id.setdefault(r, {}).setdefault(f.name, 0)
-                per_id[r][f.name] += 1
+                per_id.setdefault(r, {}).setdefault(name, 0)
+                per_id[r][name] += 1
     return per_id, totals
 
 
