@@ -20,7 +20,7 @@ from pathlib import Path
 
 from softrtc.reference import weights as rw
 
-from .experiment import H
+from .experiment import H, TSWEEP_ROWS, TSWEEP_STEPS, tier_delays
 from .paired_stats import holm
 from .report_plots import plot_all
 from .report_summary import METRICS, _get, _rows_in_order, _vs, load_results, summarize
@@ -97,6 +97,82 @@ def _sweep_table(summary, manifest) -> list:
     return lines
 
 
+def _cell_stats(res, row, seed, delay, n):
+    """Mean success and D2 of the first ``n`` episodes of one cell, or None when it has fewer."""
+    eps = res["cells"].get((row, seed, delay))
+    if eps is None or len(eps) < n:
+        return None
+    eps = sorted(eps, key=lambda e: e["episode"])[:n]
+    d2 = [e["D2"] for e in eps if math.isfinite(e["D2"])]
+    return sum(e["success"] for e in eps) / n, (sum(d2) / len(d2) if d2 else float("nan"))
+
+
+def _tsweep_table(res, m) -> list:
+    """Success and D2 per Euler step count and delay, fine-tuning seed 1, paired episodes ([AX-10]).
+
+    T = 5 is read from the main rows' seed-1 cells (their first episodes: the T-sweep rows' env seeds)."""
+    b = m["budget_values"]
+    n = b["sweep_episodes"]
+    delays = tier_delays(min(m["execute_horizon"], H - m["execute_horizon"]), "tsweep")
+    labels = {"soft2_clip": "Soft lam 2 (clip), Algorithm 1", "soft2_clip_consistent": "Soft lam 2 (clip), consistent",
+              "train_hard": "Train Hard"}
+    lines = [f"Fine-tuning seed 1, the first {n} paired episodes per delay; success / D2.", "",
+             "| T | row | " + " | ".join(f"d = {d}" for d in delays) + " |", "|---|---|" + "---|" * len(delays)]
+    any_row = False
+    for T in (5,) + TSWEEP_STEPS:
+        for base in TSWEEP_ROWS:
+            row = base if T == 5 else f"t{T}_{base}"
+            cells = [_cell_stats(res, row, 1, d, n) for d in delays]
+            if all(c is None for c in cells):
+                continue
+            any_row = True
+            lines.append(f"| {T} | {labels[base]} | " + " | ".join(
+                "not run" if c is None else f"{c[0]:.2f} / {_f(c[1], 4)}" for c in cells) + " |")
+    return lines if any_row else ["The T sweep has not been run."]
+
+
+def _mechanism_section(res) -> list:
+    """The pull of executed window tokens toward the prior under each solver step ([AX-5], mechanism.json)."""
+    mech = res.get("mechanism")
+    if mech is None:
+        return ["No measurement of the window tokens (`mechanism.json`) in the results."]
+    lines = [f"Soft lam 2 (clip), fine-tune {mech['checkpoint_sha256_16']}, {mech['episodes']} closed-loop episodes "
+             "per delay and step (env seeds and keys of the cells). For each executed window token (`d <= j < s`, "
+             "`0 < w_j < 1`) of every request, in normalized action units: the chunk `a`, the fresh plan `f` (same "
+             "checkpoint, observation and noise, naive sampler) and the prior `y`. *pull* = `<a - f, y - f> / "
+             "|y - f|^2` (the weights ask for `w_j`), *closer*: share of tokens with `|a - y| < |f - y|`, "
+             "*aside*: median `|(a - f) - pull (y - f)|`, the movement unrelated to the prior "
+             "(`softrtc/arm/mechanism.py`).", "",
+             "| d | tokens (j) | mean w | step | median pull [q25, q75] | closer | aside | moved | success |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for step, per in mech["steps"].items():
+        for d, e in sorted(per.items(), key=lambda kv: int(kv[0])):
+            if not e["tokens"]:
+                continue
+            lines.append(f"| {d} | {', '.join(map(str, e['window_tokens']))} | {e['intended']:.2f} | {step} | "
+                         f"{e['pull_median']:.2f} [{e['pull_q25']:.2f}, {e['pull_q75']:.2f}] | "
+                         f"{e['closer_share']:.2f} | {e['unrelated_median']:.3f} | {e['moved_median']:.3f} | "
+                         f"{e['success']:.2f} |")
+    return lines
+
+
+def _recomputed_section(res) -> list:
+    rc = res.get("recomputed") or {}
+    if not rc:
+        return []
+    lines = ["", "### Recomputed fine-tunes", "",
+             "These fine-tunes were recomputed on another CPU model for cells added later; their checkpoints differ "
+             "from the recorded ones in the last bits ([AX-9]). Before their new cells ran, each replayed "
+             "committed episodes of its recorded checkpoint ([AX-11]):", "",
+             "| fine-tune | recomputed / recorded sha256/16 | CPU model | replayed | same success and steps | "
+             "max abs D2 difference |", "|---|---|---|---|---|---|"]
+    for tag, r in sorted(rc.items()):
+        lines.append(f"| {tag} | {r['sha256_16']} / {r['recorded_sha256_16']} | {r['cpu_model']} | "
+                     f"`{r['replayed_row']}` d = {r['delay']} | {r['same_success_and_steps']} of {r['episodes']} | "
+                     f"{_f(r['max_abs_D2_difference'], 4) if r['max_abs_D2_difference'] is not None else 'n/a'} |")
+    return lines
+
+
 def _prior_section(res, summary, manifest) -> list:
     pe = res["prior"]
     if pe is None:
@@ -136,7 +212,7 @@ def _coverage(res, summary, m) -> list:
         want_s = b["main_seeds"] if info["tier"] == "main" else b["sweep_seeds"]
         want_s = 1 if info["train_key"] is None else want_s
         want_e = b["main_episodes"] if info["tier"] == "main" else b["sweep_episodes"]
-        want_d = list(range(maxd + 1)) if info["tier"] == "main" else [0, maxd - 1, maxd]
+        want_d = tier_delays(maxd, info["tier"])
         if info["tier"] == "sweep" and any(i["eval_key"] == info["eval_key"] and i["tier"] == "main"
                                            for _, i in _rows_in_order(m)):
             continue  # its episodes are a main row's ([AX-3])
@@ -216,7 +292,10 @@ def render_report(res_by_task: dict, summaries: dict | None = None) -> str:
                                f"{_ci(_get(summary, z, f'd{d}', 'D2'), 4)} vs clip {_ci(_get(summary, c, f'd{d}', 'D2'), 4)}"
                                f"; mean abs a zeros {_ci(_get(summary, z, f'd{d}', 'mean_abs_action'), 3)} vs clip "
                                f"{_ci(_get(summary, c, f'd{d}', 'mean_abs_action'), 3)}")
+        out += ["", "### Euler steps T (Algorithm 1, the consistent step and Hard)", ""] + _tsweep_table(res, m)
+        out += ["", "### Where the executed window tokens go", ""] + _mechanism_section(res)
         out += ["", "### Prior mismatch", ""] + _prior_section(res, summary, m)
+        out += _recomputed_section(res)
         ft = res["finetunes"]
         if ft:
             out += ["", "### Fine-tunes", "", "| fine-tune | steps | final loss | seconds | sha256/16 |",

@@ -49,9 +49,16 @@ def load_results(folder) -> dict:
             cells[(row, seed, delay)] = cache[f]
     prior = json.loads((folder / "prior_error.json").read_text()) if (folder / "prior_error.json").is_file() else None
     ft = json.loads((folder / "finetunes.json").read_text()) if (folder / "finetunes.json").is_file() else {}
+    recomputed = {}
     for f in sorted((folder / "finetunes").glob("*.json")):
-        ft[f.stem] = json.loads(f.read_text())
-    return {"manifest": manifest, "cells": cells, "prior": prior, "finetunes": ft, "folder": str(folder)}
+        # ``<tag>.recomputed.json``: a checkpoint recomputed on another CPU model and its replay check ([AX-11]).
+        if f.name.endswith(".recomputed.json"):
+            recomputed[f.name[:-len(".recomputed.json")]] = json.loads(f.read_text())
+        else:
+            ft[f.stem] = json.loads(f.read_text())
+    mech = folder / "mechanism.json"
+    return {"manifest": manifest, "cells": cells, "prior": prior, "finetunes": ft, "folder": str(folder),
+            "recomputed": recomputed, "mechanism": json.loads(mech.read_text()) if mech.is_file() else None}
 
 
 def _seeds(res, row):

@@ -1,0 +1,72 @@
+"""The consistent-step rows, the T sweep and the window-token measurement of the arm experiment ([AX-5], [AX-10],
+[AX-11])."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softrtc.arm import experiment as ex
+from softrtc.arm.mechanism import token_pull
+from softrtc.arm.tasks import get_task
+
+
+def test_token_pull_hand_values():
+    """AX-5: pull is the projection of a - f on y - f over |y - f|^2; aside is the orthogonal remainder."""
+    p, closer, aside = token_pull([1.0, 1.0], [0.0, 0.0], [2.0, 0.0])
+    assert (p, closer, aside) == (0.5, True, 1.0)
+    # a on the prior: pull 1, nothing aside; a moved away from the prior: negative pull, not closer.
+    assert token_pull([2.0, 0.0], [0.0, 0.0], [2.0, 0.0]) == (1.0, True, 0.0)
+    p, closer, aside = token_pull([-1.0, 0.0], [0.0, 0.0], [2.0, 0.0])
+    assert p == -0.5 and not closer and aside == 0.0
+    with pytest.raises(ValueError, match="undefined"):
+        token_pull([1.0], [0.0], [0.0])
+    with pytest.raises(ValueError, match="finite vectors"):
+        token_pull([1.0, np.nan], [0.0, 0.0], [1.0, 0.0])
+
+
+def test_tier_delays_and_rows():
+    """AX-10: the T sweep runs d = 0, 2, 4 with the sweep tier's seeds and episodes; its rows differ from the main
+    rows only in T (part of the eval key), and T = 5 rows keep the keys of the committed cells."""
+    assert ex.tier_delays(5, "main") == [0, 1, 2, 3, 4, 5]
+    assert ex.tier_delays(5, "sweep") == [0, 4, 5]
+    assert ex.tier_delays(5, "tsweep") == [0, 2, 4]
+    assert ex.tier_delays(3, "tsweep") == [0, 2]
+    b = ex.BUDGETS["full"]
+    assert b.seeds_episodes("tsweep") == (1, 50) and b.seeds_episodes("main") == (3, 100)
+    task = get_task("drift")
+    rows = {r.name: r for r in ex.rows_for(task)}
+    for T in ex.TSWEEP_STEPS:
+        for base in ex.TSWEEP_ROWS:
+            r = rows[f"t{T}_{base}"]
+            assert r.num_steps == T and r.tier == "tsweep"
+            assert ex.train_key(r, task) == ex.train_key(rows[base], task)
+            assert ex.eval_key(r, task) != ex.eval_key(rows[base], task)
+    # The consistent rows share the fine-tunes of their Algorithm 1 rows and have their own episodes.
+    for a, b_ in (("soft2_clip_consistent", "soft2_clip"), ("hard_soft_sampler_consistent", "hard_soft_sampler")):
+        assert ex.train_key(rows[a], task) == ex.train_key(rows[b_], task)
+        assert ex.eval_key(rows[a], task) != ex.eval_key(rows[b_], task)
+    with pytest.raises(ValueError, match="num_steps"):
+        ex.Row("x", "x", "naive", num_steps=0)
+
+
+def test_tsweep_and_mechanism_sections_from_files(tmp_path):
+    """AX-6: the report's T-sweep table reads seed-1 cells (T = 5 from the main rows), the mechanism table
+    mechanism.json; both say so when absent."""
+    from softrtc.arm.report import _mechanism_section, _tsweep_table
+
+    m = {"budget_values": {"sweep_episodes": 2}, "execute_horizon": 5}
+    eps = lambda s, d2: [{"episode": i, "success": s[i], "D2": d2[i]} for i in range(len(s))]  # noqa: E731
+    res = {"cells": {("train_hard", 1, 0): eps([1, 0, 1], [0.1, 0.3, 9.0]),
+                     ("t10_train_hard", 1, 2): eps([1, 1], [0.2, 0.4])}}
+    lines = _tsweep_table(res, m)
+    # the first 2 episodes only: success 1/2, D2 (0.1 + 0.3) / 2
+    assert "| 5 | Train Hard | 0.50 / 0.2000 | not run | not run |" in lines
+    assert "| 10 | Train Hard | not run | 1.00 / 0.3000 | not run |" in lines
+    assert _tsweep_table({"cells": {}}, m) == ["The T sweep has not been run."]
+    assert "No measurement" in _mechanism_section({"mechanism": None})[0]
+    mech = {"checkpoint_sha256_16": "ab", "episodes": 3, "steps": {"consistent": {"2": {
+        "tokens": 4, "window_tokens": [2, 3], "intended": 0.5, "pull_median": 0.4, "pull_q25": 0.1, "pull_q75": 0.6,
+        "closer_share": 0.75, "unrelated_median": 0.01, "moved_median": 0.2, "success": 1 / 3}}}}
+    assert "| 2 | 2, 3 | 0.50 | consistent | 0.40 [0.10, 0.60] | 0.75 | 0.010 | 0.200 | 0.33 |" in \
+        _mechanism_section({"mechanism": mech})
