@@ -72,6 +72,9 @@ INTERFACE: dict[str, Fn] = {
     "velocity_vjp": Fn(("field", "obs", "x", "t", "cotangent"), ("vjp",), time_args=("t",), vel_out=("vjp",)),
     "naive_sample": Fn(("field", "obs", "noise", "T"), _S, "sample"),
     "rtc_sample": Fn(("field", "obs", "noise", "prior", "weights", "T"), _S, "sample"),
+    # [S-10] the training-time sampler with a named solver step; an adapter without it reports its cases
+    # unsupported ([CF-9]), so adapters written before steps existed keep passing.
+    "rtc_sample_step": Fn(("field", "obs", "noise", "prior", "weights", "T", "step"), _S, "sample"),
     "guided_sample": Fn(("field", "obs", "noise", "prior", "weights", "T", "max_guidance"), _S, "sample"),
     "method_weights": Fn(("method", "H", "s", "d", "window"), ("weights",)),
     "guidance_weights": Fn(("H", "s", "d", "variant"), ("weights",)),
@@ -128,6 +131,7 @@ INT_ARRAYS = frozenset({"indices", "chunk_index", "delays"})
 TRACE_KEYS = {
     "naive_sample": ("state", "time", "velocity", "next_state"),
     "rtc_sample": ("state", "time", "velocity", "blended_state", "next_state"),
+    "rtc_sample_step": ("state", "time", "velocity", "blended_state", "next_state"),
     "guided_sample": ("state", "time", "velocity", "denoised", "error", "vjp", "guidance_weight", "guided_velocity",
                       "next_state"),
 }

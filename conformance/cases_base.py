@@ -34,9 +34,9 @@ def exact_entries(function: str, args: dict, expected: dict) -> dict:
     if function in WEIGHT_FUNCTIONS:
         w = np.asarray(expected["weights"], dtype=np.float64)
         out["weights"] = np.flatnonzero((w == 0.0) | (w == 1.0)).tolist()
-    elif function in ("token_times", "corrupt", "rtc_sample"):
+    elif function in ("token_times", "corrupt", "rtc_sample", "rtc_sample_step"):
         ones = np.flatnonzero(np.asarray(args["weights"], dtype=np.float64) == 1.0).tolist()
-        out["trace/time" if function == "rtc_sample" else "times"] = ones
+        out["trace/time" if function.startswith("rtc_sample") else "times"] = ones
     elif function == "guidance_weight" and args["t"] == 0:
         out["lam"] = [0]
     return {k: v for k, v in out.items() if v}

@@ -118,14 +118,15 @@ class JaxAdapter:
     # is validated on the host first (so invalid cases raise the twin's own
     # ValueError) and then runs jitted, as a user would run it: eager JAX
     # dispatches every op (and re-traces every VJP) one by one.
-    def _sample(self, kind, field, obs, noise, prior, w, T, max_guidance=None):
+    def _sample(self, kind, field, obs, noise, prior, w, T, max_guidance=None, step="algorithm1"):
         sampler = _mod("sampler")
         if kind == "guided":
             _mod("guidance").guidance_weight(0.0, max_guidance)  # validates max_guidance
+        step = sampler.check_step(step)  # [S-10] validated on the host, as the twin would
         args = sampler.check_batch(_b(obs), _b(noise), None if prior is None else _b(prior),
                                    None if w is None else _b(w), T)
         self._field(field)  # validates the field parameters
-        fn = _jitted_sampler(kind)
+        fn = _jitted_sampler(kind, step)
         params = {k: np.asarray(v, np.float32) for k, v in field.items()}
         out = fn(params, args[0], args[1], args[2], args[3], args[4],
                  None if max_guidance is None else float(max_guidance))
@@ -136,6 +137,9 @@ class JaxAdapter:
 
     def rtc_sample(self, field, obs, noise, prior, w, T):
         return self._sample("rtc", field, obs, noise, prior, w, T)
+
+    def rtc_sample_step(self, field, obs, noise, prior, w, T, step):
+        return self._sample("rtc", field, obs, noise, prior, w, T, step=step)
 
     def guided_sample(self, field, obs, noise, prior, w, T, max_guidance):
         return self._sample("guided", field, obs, noise, prior, w, T, max_guidance)
@@ -181,7 +185,7 @@ class JaxAdapter:
 
 
 @functools.lru_cache(maxsize=None)
-def _jitted_sampler(kind: str):
+def _jitted_sampler(kind: str, step: str = "algorithm1"):
     import jax
 
     def run(params, obs, noise, prior, w, T, max_guidance):
@@ -189,7 +193,7 @@ def _jitted_sampler(kind: str):
         if kind == "naive":
             return _mod("sampler").naive_sample(field, obs, noise, T, unroll=False)
         if kind == "rtc":
-            return _mod("sampler").rtc_sample(field, obs, noise, prior, w, T, unroll=False)
+            return _mod("sampler").rtc_sample(field, obs, noise, prior, w, T, unroll=False, step=step)
         return _mod("guidance").guided_sample(field, obs, noise, prior, w, T, max_guidance, unroll=False)
 
     return jax.jit(run, static_argnums=(5, 6))
@@ -230,7 +234,8 @@ def _float32_inputs(method):
 
 
 for _name in ("prefix_weights", "corrupt", "token_times", "loss", "batch_loss", "velocity", "velocity_vjp",
-              "naive_sample", "rtc_sample", "guided_sample", "sample_delay", "shift_prior", "execute_chunks",
+              "naive_sample", "rtc_sample", "rtc_sample_step", "guided_sample", "sample_delay", "shift_prior",
+              "execute_chunks",
               "difference_norm", "action_delta", "action_jerk", "boundary_jump", "bootstrap_interval",
               "standard_error"):
     setattr(JaxAdapter, _name, _float32_inputs(getattr(JaxAdapter, _name)))

@@ -104,6 +104,10 @@ class ReferenceAdapter:
     def rtc_sample(self, field, obs, noise, prior, w, T):
         return sampler.rtc_sample(velocity.ReferenceVelocityField(field), obs, noise, prior, w, T, return_trace=True)
 
+    def rtc_sample_step(self, field, obs, noise, prior, w, T, step):
+        return sampler.rtc_sample(velocity.ReferenceVelocityField(field), obs, noise, prior, w, T, return_trace=True,
+                                  step=step)
+
     def guided_sample(self, field, obs, noise, prior, w, T, max_guidance):
         return guidance.guided_sample(velocity.ReferenceVelocityField(field), obs, noise, prior, w, T, max_guidance,
                                       return_trace=True)

@@ -110,6 +110,11 @@ class TorchAdapter:
         return _batched(lambda: sampler.rtc_sample(fn, o[None], n[None], y[None], ww, T,
                                                    convention=self.convention, return_trace=True))
 
+    def rtc_sample_step(self, params, obs, noise, prior, w, T, step):
+        fn, o, n, y, ww = self.make_field(params), _t(obs), _t(noise), _t(prior), _t(w)
+        return _batched(lambda: sampler.rtc_sample(fn, o[None], n[None], y[None], ww, T, convention=self.convention,
+                                                   return_trace=True, step=step))
+
     def guided_sample(self, params, obs, noise, prior, w, T, max_guidance):
         fn, o, n, y, ww = self.make_field(params), _t(obs), _t(noise), _t(prior), _t(w)
         return _batched(lambda: guidance.guided_sample(fn, o[None], n[None], y[None], ww, T, max_guidance,

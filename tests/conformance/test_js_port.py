@@ -15,8 +15,8 @@ NODE = shutil.which("node")
 needs_node = pytest.mark.skipif(NODE is None, reason="node (Node.js 20+) not installed")
 
 PORTED = {"endpoint", "prefix_weights", "weights", "hard_weights", "guidance_weights", "guidance_weight",
-          "method_weights", "token_times", "velocity", "naive_sample", "rtc_sample", "shift_prior",
-          "execute_chunks"}
+          "method_weights", "token_times", "velocity", "naive_sample", "rtc_sample", "rtc_sample_step",
+          "shift_prior", "execute_chunks"}
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +55,8 @@ def test_js_port_passes_every_case_it_supports(vector_files):
     ("checkInt('delays[0]', delays[0], 0, 0);", "", "execute_chunks"),          # first delay not checked
     ("throw new rtc.ValueError(`${key} must be an integer", "if (0) throw new rtc.ValueError(`${key}",
      "endpoint"),                                                               # 2.0 read as the integer 2
+    ("xi + (c[j] * v[j][i]) / T", "xi + v[j][i] / T", "rtc_sample_step"),       # [S-10] full step on window tokens
+    ("k === 0 || again[j]", "true", "rtc_sample_step"),                         # [S-10] window re-blended
 ])
 def test_a_broken_copy_of_the_port_fails(tmp_path, old, new, function, vector_files):
     """[CF-31], [CF-16] The runner judges the port, not the other way round: a copy with one porting

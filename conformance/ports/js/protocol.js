@@ -135,6 +135,10 @@ const FUNCTIONS = {
     const [chunk, trace] = rtc.rtcSample(a.field, a.obs, a.noise, a.prior, a.weights, a.T);
     return { chunk, trace };
   },
+  rtc_sample_step: (a) => {
+    const [chunk, trace] = rtc.rtcSample(a.field, a.obs, a.noise, a.prior, a.weights, a.T, a.step);
+    return { chunk, trace };
+  },
   shift_prior: (a) => ({ prior: rtc.shiftPrior(a.prev, a.s) }),
   execute_chunks: (a) => rtc.executeChunks(a.chunks, a.delays, a.s),
 };

@@ -315,7 +315,7 @@ class VelocityField {
   }
 }
 
-// ------------------------------------------------------------------ samplers [S-1]..[S-5]
+// ------------------------------------------------------------------ samplers [S-1]..[S-5], [S-10]
 
 function checkSteps(T) {
   return checkInt('T', T, 1, MAX_STEPS);
@@ -338,21 +338,31 @@ function naiveSample(field, obs, noise, T) {
   return [x, trace];
 }
 
-function rtcSample(field, obs, noise, prior, weights, T) {
+// The training-time sampler's solver steps [S-10]; 'algorithm1' (the paper's) is the default.
+const STEPS = ['algorithm1', 'consistent'];
+
+function rtcSample(field, obs, noise, prior, weights, T, step = 'algorithm1') {
   const f = new VelocityField(field);
   checkArray('noise', noise, 2, { shape: [f.H, f.A] });
   checkArray('obs', obs, 1, { shape: [f.O] });
   checkArray('prior', prior, 2, { shape: [f.H, f.A] });
   checkArray('weights', weights, 1, { shape: [f.H], lo: 0, hi: 1 });
   checkSteps(T);
+  checkChoice('step', step, STEPS);
+  const consistent = step === 'consistent';
+  // [S-10] per-token step size c = 1 - w (1 at w = 1); c = 1 makes (c v) / T equal v / T exactly [S-11].
+  const c = weights.map((w) => (consistent && w < 1 ? 1 - w : 1));
+  // [S-10] window tokens (0 < w < 1) are blended before the first step only, then carried.
+  const again = weights.map((w) => !consistent || w === 0 || w === 1);
   let x = noise;
   const trace = [];
   for (let k = 0; k < T; k += 1) {
     const t = k / T;
-    const blended = x.map((row, j) => row.map((xi, i) => weights[j] * prior[j][i] + (1 - weights[j]) * xi));
+    const blended = x.map((row, j) => (k === 0 || again[j]
+      ? row.map((xi, i) => weights[j] * prior[j][i] + (1 - weights[j]) * xi) : row));
     const time = weights.map((w) => w + (1 - w) * t);
     const v = f.velocity(obs, blended, time);
-    const next = blended.map((row, j) => row.map((xi, i) => xi + v[j][i] / T)); // no final blend [S-5]
+    const next = blended.map((row, j) => row.map((xi, i) => xi + (c[j] * v[j][i]) / T)); // no final blend [S-5]
     trace.push({ state: x, time, velocity: v, blended_state: blended, next_state: next });
     x = next;
   }
@@ -401,5 +411,5 @@ function executeChunks(chunks, delays, s) {
 
 module.exports = {
   ValueError, endpoint, prefixWeights, softWeights, hardWeights, guidanceWeights, guidanceWeight, methodWeights,
-  tokenTimes, VelocityField, naiveSample, rtcSample, shiftPrior, executeChunks,
+  tokenTimes, VelocityField, naiveSample, rtcSample, STEPS, shiftPrior, executeChunks,
 };
