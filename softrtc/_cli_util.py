@@ -151,6 +151,36 @@ def nonempty() -> Callable[[str], str]:
     return parse
 
 
+# [N-13] The extra that installs each optional top-level module a command imports.
+MODULE_EXTRAS = {"jax": "jax", "flax": "jax", "optax": "jax", "tqdm": "jax", "pymunk": "arm", "matplotlib": "arm",
+                 "kinetix": "kinetix", "torch": "torch"}
+
+
+def extra_hint(module: str) -> str | None:
+    """``needs the 'X' extra (missing module M): pip install 'softrtc[X]'`` for an optional module, else None."""
+    root = (module or "").split(".")[0]
+    extra = MODULE_EXTRAS.get(root)
+    return None if extra is None else f"needs the '{extra}' extra (missing module {root}): pip install 'softrtc[{extra}]'"
+
+
+def missing_extra(*modules: str) -> str | None:
+    """[N-13] The :func:`extra_hint` of the first of ``modules`` that cannot be imported, or None.
+
+    A command calls it before any work for the modules it imports only when it gets there (tqdm for a
+    training loop, matplotlib for plots), so a missing one ends it at the door, not after minutes of work.
+    """
+    import importlib.util
+
+    for name in modules:
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):  # a parent package missing, or a module without a spec
+            found = False
+        if not found:
+            return extra_hint(name) or f"needs the module {name}, which is not installed"
+    return None
+
+
 def leaf_progs(parser: argparse.ArgumentParser) -> None:
     """Give every parser below ``parser`` the default ``_prog`` (e.g. "softrtc bench runtime") and ``_parser``,
     so that errors raised inside a command name the whole command ([N-11])."""

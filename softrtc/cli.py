@@ -13,7 +13,7 @@ import importlib.util
 import os
 import sys
 
-from ._cli_util import command_error, leaf_progs, missing_subcommand
+from ._cli_util import command_error, extra_hint, leaf_progs, missing_subcommand
 
 # (module, the name its demo step and missing-extra line go by, extra that provides its dependencies)
 _SUBCOMMAND_MODULES = [
@@ -120,6 +120,13 @@ def main(argv=None) -> int:
         # Point stdout at devnull so the interpreter's final flush does not raise a second time.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141  # 128 + SIGPIPE, the status a shell reports for a tool killed by a closed pipe
+    except ModuleNotFoundError as exc:
+        # [N-13] An optional module a command imports only when it runs: one line naming the extra. The
+        # commands check theirs at the door; this catches any import deeper down.
+        hint = extra_hint(exc.name)
+        if hint is None:
+            raise
+        return command_error(args._prog, hint)
     except (ValueError, OSError, OverflowError) as exc:
         # Invalid input ([N-7]) or an unusable file: one line naming the problem, no traceback.
         # SOFTRTC_TRACEBACK=1 shows the traceback when debugging softrtc itself.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import tempfile
 
-from .._cli_util import group_help, input_dir, int_in, output_dir, real_in
+from .._cli_util import command_error, group_help, input_dir, int_in, missing_extra, output_dir, real_in
 
 __all__ = ["add_subparsers", "demo"]
 
@@ -77,6 +77,9 @@ def _train(args) -> int:
 
 
 def _study(args) -> int:
+    hint = missing_extra("matplotlib")  # [N-13] the trace plot comes after the trials: check it first
+    if hint:
+        return command_error(args._prog, hint)
     from .study import run_study
 
     run_study(args.checkpoints, trials=args.trials, added_latency_s=args.latency_ms / 1000.0, seed0=args.seed0,

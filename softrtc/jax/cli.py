@@ -12,7 +12,7 @@ import argparse
 import sys
 import time
 
-from .._cli_util import command_error, comma_list, group_help, int_in, output_file
+from .._cli_util import command_error, comma_list, group_help, int_in, missing_extra, output_file
 
 
 _size_list = comma_list("value", int_in("each batch size", 1, 1 << 16))
@@ -94,10 +94,13 @@ def _run(args, run, fmt, **extra):
     Returns the result, or the exit status 2 when the options are invalid or
     the JSON cannot be written ([B-10]).
     """
+    prog = getattr(args, "_prog", "softrtc bench")
+    hint = missing_extra("tqdm")  # [N-13] the training rows' progress bar: checked before any work
+    if hint:
+        return command_error(prog, hint)
     from .bench_config import BenchConfig
     from .bench_report import write_json
 
-    prog = getattr(args, "_prog", "softrtc bench")
     try:
         config = BenchConfig(
             calls=args.calls, warmup=args.warmup, batch_sizes=tuple(args.batch_sizes), delay=args.delay,

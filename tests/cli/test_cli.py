@@ -341,3 +341,48 @@ def test_pickle_loaders_warn_that_files_must_be_trusted(capsys):
             assert text.endswith(warning), (option, text)
     readme = " ".join((ROOT / "docs" / "guides" / "kinetix.md").read_text().split())
     assert "so load only files from a source you trust" in readme and "unpickling can run code" in readme
+
+
+@pytest.mark.parametrize("module, argv, extra", [
+    ("tqdm", ["bench", "runtime", "--calls", "1"], "jax"),
+    ("tqdm", ["bench", "vjp", "--calls", "1"], "jax"),
+    ("matplotlib", ["arm", "report"], "arm"),
+    ("matplotlib", ["arm", "study", "--trials", "1"], "arm"),
+    ("tqdm", ["arm", "experiment", "--quick"], "jax"),
+])
+def test_a_missing_optional_module_is_one_line_naming_the_extra(module, argv, extra, tmp_path, capsys, monkeypatch):
+    """N-13: a command whose optional module (tqdm for the training progress, matplotlib for the arm plots)
+    is missing ends at the door with status 2 and one line naming the extra; nothing is written."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setitem(sys.modules, module, None)  # what `import` and find_spec see for an absent module
+    option = {"bench": ["--out", str(tmp_path / "b.json")], "arm": []}[argv[0]]
+    if argv[:2] == ["arm", "report"]:
+        option = ["--results", str(tmp_path / "none")]
+    if argv[:2] in (["arm", "study"], ["arm", "experiment"]):
+        option = ["--out", str(tmp_path / "out")] + (["--work", str(tmp_path / "w")] if argv[1] == "experiment" else [])
+    assert status(argv + option) == 2
+    out, err = capsys.readouterr()
+    hint = f"needs the '{extra}' extra (missing module {module}): pip install 'softrtc[{extra}]'"
+    assert err.splitlines() == [f"softrtc {' '.join(argv[:2])}: error: {hint}"
+                                + (" (or run with --no-plots)" if argv[1] == "report" else "")]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_module_missing_deep_inside_a_command_is_one_line_too(capsys, monkeypatch):
+    """N-13: an optional module imported deep inside a command (past its door checks) still ends it with one
+    line naming the extra; a module of no extra keeps its traceback (it is a defect, not a missing extra)."""
+    import softrtc.reference_cli as rc
+
+    def fail(args):
+        raise ModuleNotFoundError("No module named 'tqdm.auto'; 'tqdm' is not a package", name="tqdm.auto")
+
+    monkeypatch.setattr(rc, "_weights", fail, raising=False)
+    parser = __import__("softrtc.cli", fromlist=["build_parser"]).build_parser()
+    weights = parser._subparsers._group_actions[0].choices["weights"]
+    monkeypatch.setattr(weights, "_defaults", dict(weights._defaults, func=fail))
+    monkeypatch.setattr("softrtc.cli.build_parser", lambda: parser)
+    assert status(["weights"]) == 2
+    assert capsys.readouterr().err == ("softrtc weights: error: needs the 'jax' extra (missing module tqdm): "
+                                       "pip install 'softrtc[jax]'\n")
+    assert cu.extra_hint("not_an_extra_module") is None
+    assert cu.missing_extra("json", "matplotlib.pyplot") is None
