@@ -11,7 +11,7 @@ from .reference import endpoints, metrics
 from .reference.endpoints import delay_scaled, fixed, hard, offset
 from .reference.executor import execute_chunks
 from .reference.guidance import guidance_prefix_weights
-from .reference.sampler import naive_sample, rtc_sample
+from .reference.sampler import MAX_STEPS, STEPS, naive_sample, rtc_sample, step_multipliers
 from .reference.velocity import ReferenceVelocityField
 from .reference.weights import SoftWindow, hard_weights, prefix_weights, soft_weights
 
@@ -37,13 +37,28 @@ def _rule_from_args(args):
     return hard()
 
 
-def weights_table(H: int, s: int, window: SoftWindow, delays=None) -> str:
-    """Text table of the soft weights for each delay ([W-7])."""
+def weights_table(H: int, s: int, window: SoftWindow, delays=None, step: str | None = None,
+                  num_steps: int = 5) -> str:
+    """Text table of the soft weights for each delay ([W-7]); with ``step`` ([S-10]) each delay's row is
+    followed by the per-token step sizes c_j / T of that solver step for ``num_steps`` = T Euler steps.
+
+    >>> print(weights_table(4, 2, SoftWindow(delay_scaled(2.0, 2)), [1], "consistent", 4))
+    H=4 s=2 window={"rule": {"kind": "delay_scaled", "lam": 2.0, "h_max": 2}, "schedule": "linear", \
+"parametrization": "rtc", "overflow": "clip"} step=consistent T=4
+    d  e(d) e* | j=0   j=1   j=2   j=3
+    1  2    2  | 1.000 0.500 0.000 0.000
+       c/T     | 0.250 0.125 0.250 0.250
+    """
     from .reference._validate import check_horizon, check_int
+    from .reference.sampler import check_step
     H = check_horizon(H)
     s = check_int("s", s, 1, H)
+    if step is not None:
+        step = check_step(step)
+        num_steps = check_int("num_steps", num_steps, 1, MAX_STEPS)
     delays = range(0, min(s, H - s) + 1) if delays is None else delays
-    lines = [f"H={H} s={s} window={json.dumps(window.to_dict())}",
+    head = f"H={H} s={s} window={json.dumps(window.to_dict())}"
+    lines = [head if step is None else f"{head} step={step} T={num_steps}",
              ("d  e(d) e* | " + " ".join(f"j={j:<3d}" for j in range(H))).rstrip()]
     from .reference.weights import effective_endpoint
     for d in delays:
@@ -51,6 +66,9 @@ def weights_table(H: int, s: int, window: SoftWindow, delays=None) -> str:
         es = effective_endpoint(H, d, min(e, H), s, window.overflow)
         w = soft_weights(H, d, window, s)
         lines.append(f"{d:<2d} {e:<4d} {es:<2d} | " + " ".join(f"{x:5.3f}" for x in w))
+        if step is not None:  # [S-10] token j moves by c_j v_j / T
+            lines.append(f"{'':<2} {'c/T':<4} {'':<2} | " + " ".join(f"{c / num_steps:5.3f}"
+                                                                   for c in step_multipliers(w, step)))
     return "\n".join(lines)
 
 
@@ -111,6 +129,11 @@ def add_subparsers(sub) -> None:
                    help="window parametrization (default rtc)")
     p.add_argument("--overflow", choices=("clip", "zeros"), default="clip",
                    help="window past the overlap (default clip)")
+    p.add_argument("--step", choices=STEPS, default=None,
+                   help="also print each token's step size c_j / T of this solver step of the training-time "
+                        "sampler ([S-10]; algorithm1: 1 / T everywhere, consistent: (1 - w_j) / T inside the window)")
+    p.add_argument("--T", type=int_in("value", 1, MAX_STEPS), default=None,
+                   help=f"Euler steps T of --step, 1 .. {MAX_STEPS} (default 5)")
     p.set_defaults(func=_weights_cmd)
     e = sub.add_parser("examples", help="print the reference's worked examples")
     e.set_defaults(func=lambda args: demo())
@@ -127,8 +150,10 @@ def _weights_cmd(args) -> int:
             given = getattr(args, "h_max" if opt == "--h-max" else "length") is not None
             raise ValueError(f"{opt} must be <= --H={args.H}, got {rule.bound()}"
                              + ("" if given else f" (the default; pass {opt} <= {args.H} for a short chunk)"))
+        if args.T is not None and args.step is None:
+            raise ValueError(f"--T applies to --step only (the step sizes c_j / T), got --T {args.T} without --step")
         window = SoftWindow(rule, args.schedule, args.parametrization, args.overflow)
-        print(weights_table(args.H, args.s, window))
+        print(weights_table(args.H, args.s, window, step=args.step, num_steps=5 if args.T is None else args.T))
     except ValueError as exc:
         return command_error(getattr(args, "_prog", "softrtc weights"), exc)
     return 0
