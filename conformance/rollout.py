@@ -191,7 +191,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                     "module[:ATTR] or file.py[:ATTR] with rollout_chunk")
     who.add_argument("--impl-cmd", help="a program speaking the rollout protocol ([CR-4])")
     parser.add_argument("--env", default="arm", choices=ENVS, help="simulator (kinetix: not implemented)")
-    parser.add_argument("--episodes", type=int, default=20, help="episodes per method (default 20)")
+    parser.add_argument("--episodes", type=int, default=5,
+                        help="episodes per method (default 5: 20 episodes with the default methods)")
     parser.add_argument("--methods", default="naive,train_hard,train_soft,inference_hard",
                         help="comma-separated methods of [S-6] (default naive,train_hard,train_soft,inference_hard)")
     parser.add_argument("--delays", default="0,1,2,3,4,5", help="delays drawn for requests c >= 1 (default 0..5)")
