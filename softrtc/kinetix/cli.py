@@ -146,7 +146,7 @@ def _eval_inner(args) -> int:
 
     from . import env as kenv
     from .evaluation import evaluate
-    from .finetune import find_level_policy_file, load_level_policy
+    from .finetune import check_level_role, find_level_policy_file, read_level_policy
     from .methods import PAPER_METHODS
     from .protocol import EvalConfig
     from .results import write_results
@@ -188,9 +188,18 @@ def _eval_inner(args) -> int:
                 raise FileNotFoundError(f"{option} has no policy for level {level!r}: expected {level}.npz or a "
                                         f"release worlds_l_{level}.pkl in ., policies/ or <epoch>/policies/") from None
             try:
-                cache[(d, level)] = load_level_policy(d, level)
+                cache[(d, level)] = read_level_policy(d, level)
             except (ValueError, OSError, EOFError, pickle.UnpicklingError) as exc:
                 raise ValueError(f"{option}: the policy of level {level!r} does not load: {exc}") from None
+    # [KE-11] Each method gets a policy in its role (the base for naive and inference-time methods, a hard or
+    # soft fine-tune of its window for train_hard / train_soft), as the arm's loaders check theirs ([A-21]).
+    for spec in config.methods:
+        option, d = sources[spec.label]
+        for level in config.levels if d is not None else ():
+            try:
+                check_level_role(cache[(d, level)][1], spec.method, spec.window)
+            except ValueError as exc:
+                raise ValueError(f"{option}: level {level!r}: {exc}") from None
     fresh = None
     if any(d is None for _, d in sources.values()):
         seed = 0 if args.init_seed is None else args.init_seed
@@ -199,7 +208,7 @@ def _eval_inner(args) -> int:
 
     def policies(spec, level):
         d = sources[spec.label][1]
-        return fresh if d is None else cache[(d, level)]
+        return fresh if d is None else cache[(d, level)][0]
 
     from .distributed import is_writer
 

@@ -28,12 +28,13 @@ from softrtc.jax.params import load_pure_dict
 from softrtc.jax.policy import FlowPolicy, PolicyConfig
 from softrtc.jax.training import TrainConfig, train
 from softrtc.reference import weights as ref_weights
+from softrtc.reference.methods import METHODS
 
 from . import data as kdata
 from .env import LEVEL_NAMES
 
 __all__ = ["infer_policy_shape", "find_bc_file", "bc_policy_shape", "load_bc_policy", "find_level_policy_file",
-           "load_level_policy", "finetune_level"]
+           "load_level_policy", "read_level_policy", "check_level_role", "method_role", "ROLES", "finetune_level"]
 
 
 def _check_level(level: Any) -> str:
@@ -163,14 +164,71 @@ def find_level_policy_file(policy_dir: str | os.PathLike, level: str) -> Path:
                                 f"worlds_l_{level}.pkl in ., policies/ or <epoch>/policies/") from None
 
 
-def load_level_policy(policy_dir: str | os.PathLike, level: str) -> FlowPolicy:
-    """The policy of ``level`` in ``policy_dir`` ([KE-11]): a softrtc checkpoint ``<level>.npz``
-    (:func:`finetune_level`'s output) or else a release file (:func:`find_bc_file`)."""
+# [KE-11] The role a policy file plays: the base (a release file, or a checkpoint without a training method)
+# or a fine-tune of training-time RTC with objective "hard" or "soft" (finetune_level's "method").
+ROLES = ("base", "hard", "soft")
+
+
+def method_role(method: str) -> str:
+    """The role of the policy a method of [S-6] runs ([KE-11]): ``train_hard`` a hard fine-tune,
+    ``train_soft`` a soft one, the base for ``naive`` and the inference-time methods."""
+    return {"train_hard": "hard", "train_soft": "soft"}.get(method, "base")
+
+
+def read_level_policy(policy_dir: str | os.PathLike, level: str) -> tuple[FlowPolicy, dict]:
+    """``(policy, about)`` for ``level`` in ``policy_dir`` ([KE-11]); ``about`` holds ``path``, ``role`` and,
+    for a soft fine-tune, its training ``window`` (a reference SoftWindow, else None).
+
+    A checkpoint must name ``level`` in its metadata (as :func:`finetune_level` writes it): a file copied
+    under another level's name is refused, naming the file and both levels. Its ``method`` ("hard" or
+    "soft") is its role; without one it is a base. A release ``.pkl`` file is a base.
+    """
     path = find_level_policy_file(policy_dir, level)
-    if path.suffix == ".npz":
-        policy, _ = jckpt.load_checkpoint(path)
-        return policy
-    return load_bc_policy(path)
+    if path.suffix != ".npz":
+        return load_bc_policy(path), {"path": path, "role": "base", "window": None}
+    policy, meta = jckpt.load_checkpoint(path)
+    if meta.get("level") != level:
+        raise ValueError(f"checkpoint {str(path)!r} holds the policy of level {meta.get('level')!r} (its "
+                         f"metadata), not of level {level!r}")
+    role = meta.get("method", "base")
+    if role not in ROLES:
+        raise ValueError(f"checkpoint {str(path)!r} names training method {role!r}; expected 'hard', 'soft' or none")
+    window = None
+    if role == "soft":
+        try:
+            window = TrainConfig.from_dict(meta["train_config"]).window
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"checkpoint {str(path)!r}: a soft fine-tune without a valid train_config ({exc})") \
+                from None
+    return policy, {"path": path, "role": role, "window": window}
+
+
+def check_level_role(about: Mapping, method: str, window: ref_weights.SoftWindow | None = None) -> None:
+    """Raise ValueError unless the policy described by ``about`` (:func:`read_level_policy`) plays the role
+    ``method`` needs ([KE-11]); for ``train_soft`` its training window must be ``window`` too ([W-7])."""
+    need = method_role(method)
+    name = {"base": "a base policy", "hard": "a hard fine-tune", "soft": "a soft fine-tune"}
+    if about["role"] != need:
+        raise ValueError(f"{str(about['path'])!r} is {name[about['role']]}, but method {method!r} runs "
+                         f"{name[need]}")
+    if need == "soft" and window is not None and about["window"] != window:
+        raise ValueError(f"{str(about['path'])!r} was fine-tuned with window {about['window']}, but method "
+                         f"{method!r} runs window {window}")
+
+
+def load_level_policy(policy_dir: str | os.PathLike, level: str, method: str | None = None) -> FlowPolicy:
+    """The policy of ``level`` in ``policy_dir`` ([KE-11]): a softrtc checkpoint ``<level>.npz``
+    (:func:`finetune_level`'s output) or else a release file (:func:`find_bc_file`).
+
+    A checkpoint's metadata must name ``level``; with ``method`` the file must also play that method's role
+    (:func:`check_level_role`), as the arm's loaders check theirs ([A-21]).
+    """
+    if method is not None and method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)} or None, got {method!r}")
+    policy, about = read_level_policy(policy_dir, level)
+    if method is not None:
+        check_level_role(about, method)
+    return policy
 
 
 def finetune_level(data_dir: str | os.PathLike, bc_dir: str | os.PathLike, level: str, method: str,

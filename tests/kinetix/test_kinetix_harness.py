@@ -562,7 +562,7 @@ def test_cli_eval_policy_sources(tmp_path, capsys, monkeypatch):
     pol, bc, _ = _write_release(tmp_path)
     tuned = FlowPolicy(obs_dim=pol.obs_dim, action_dim=pol.action_dim, config=pol.config, rngs=nnx.Rngs(9))
     (tmp_path / "hard").mkdir()
-    jckpt.save_checkpoint(tmp_path / "hard" / "grasp_easy.npz", tuned, {"level": "grasp_easy"})
+    jckpt.save_checkpoint(tmp_path / "hard" / "grasp_easy.npz", tuned, {"level": "grasp_easy", "method": "hard"})
     seen = {}
 
     def fake_evaluate(config, policies, progress=True):
@@ -607,3 +607,98 @@ def test_cli_finetune_checks_d_max_first(tmp_path, capsys):
     with pytest.raises(ValueError, match=r"^d_max must be an integer in \[0, 8\]"):  # the library checks too
         ft.finetune_level(data, bc, "catapult", "hard", tmp_path / "ft", d_max=9)
     assert not (tmp_path / "ft").exists()
+
+
+def _save_level_checkpoint(folder, level, meta, seed=0):
+    """A tiny policy built directly (no training) saved as ``<folder>/<level>.npz`` with ``meta``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    cfg = PolicyConfig(channel_dim=8, channel_hidden_dim=8, token_hidden_dim=4, num_layers=1, action_chunk_size=8)
+    pol = FlowPolicy(obs_dim=5, action_dim=2, config=cfg, rngs=nnx.Rngs(seed))
+    jckpt.save_checkpoint(folder / f"{level}.npz", pol, meta)
+    return pol
+
+
+def test_level_policy_loader_checks_level_and_role(tmp_path):
+    """KE-11: a checkpoint whose metadata names another level is refused under this level's name; with a
+    method, the file must play its role (base for naive and inference-time methods, a hard or soft
+    fine-tune of the method's window for train_hard / train_soft); a release file is a base."""
+    from softrtc.kinetix import finetune as ft
+    from softrtc.jax.training import TrainConfig
+    from softrtc.reference.endpoints import delay_scaled
+    from softrtc.reference.weights import SoftWindow
+
+    _save_level_checkpoint(tmp_path / "other", "grasp_easy", {"level": "car_launch", "method": "hard"})
+    with pytest.raises(ValueError) as info:
+        ft.load_level_policy(tmp_path / "other", "grasp_easy")
+    assert str(info.value) == (f"checkpoint {str(tmp_path / 'other' / 'grasp_easy.npz')!r} holds the policy of "
+                               f"level 'car_launch' (its metadata), not of level 'grasp_easy'")
+    _save_level_checkpoint(tmp_path / "none", "grasp_easy", {})
+    with pytest.raises(ValueError, match="holds the policy of level None"):
+        ft.load_level_policy(tmp_path / "none", "grasp_easy")
+
+    hard = tmp_path / "hard"
+    _save_level_checkpoint(hard, "grasp_easy", {"level": "grasp_easy", "method": "hard"})
+    ft.load_level_policy(hard, "grasp_easy", "train_hard")
+    for method, need in (("train_soft", "a soft fine-tune"), ("naive", "a base policy"),
+                         ("inference_soft", "a base policy")):
+        with pytest.raises(ValueError, match=rf"grasp_easy\.npz' is a hard fine-tune, but method '{method}' "
+                                             rf"runs {need}$"):
+            ft.load_level_policy(hard, "grasp_easy", method)
+    base = tmp_path / "base"
+    _save_level_checkpoint(base, "grasp_easy", {"level": "grasp_easy"})
+    ft.load_level_policy(base, "grasp_easy", "inference_hard")
+    with pytest.raises(ValueError, match="is a base policy, but method 'train_hard' runs a hard fine-tune$"):
+        ft.load_level_policy(base, "grasp_easy", "train_hard")
+    _, bc, _ = _write_release(tmp_path / "release")
+    ft.load_level_policy(bc, "grasp_easy", "naive")
+    with pytest.raises(ValueError, match=r"worlds_l_grasp_easy\.pkl' is a base policy, but method 'train_soft'"):
+        ft.load_level_policy(bc, "grasp_easy", "train_soft")
+
+    # A soft fine-tune serves train_soft only with the window it was trained with ([W-7]).
+    soft = tmp_path / "soft"
+    lam1 = TrainConfig(method="soft", window=SoftWindow(delay_scaled(1.0, 5)), execute_horizon=4, d_max=4)
+    _save_level_checkpoint(soft, "grasp_easy", {"level": "grasp_easy", "method": "soft", "train_config": lam1.to_dict()})
+    policy, about = ft.read_level_policy(soft, "grasp_easy")
+    assert about["role"] == "soft" and about["window"] == SoftWindow(delay_scaled(1.0, 5))
+    ft.check_level_role(about, "train_soft", SoftWindow(delay_scaled(1.0, 5)))
+    with pytest.raises(ValueError, match="was fine-tuned with window .* but method 'train_soft' runs window"):
+        ft.check_level_role(about, "train_soft", SoftWindow())
+    with pytest.raises(ValueError, match="^method must be one of"):
+        ft.load_level_policy(soft, "grasp_easy", "train_sofft")
+
+
+@needs_levels
+def test_cli_eval_checks_each_methods_role(tmp_path, capsys, monkeypatch):
+    """KE-11 KE-12: `kinetix eval` refuses, before any rollout, a --method-policy folder whose checkpoint plays
+    another role or level than the method and level it would serve, naming the option, level and file."""
+    from softrtc.cli import main
+
+    def no_eval(*args, **kwargs):
+        raise AssertionError("the evaluation started before the roles were checked")
+
+    monkeypatch.setattr(kevaluation, "evaluate", no_eval)
+    _, bc, _ = _write_release(tmp_path)
+    soft = tmp_path / "soft"
+    from softrtc.jax.training import TrainConfig
+
+    _save_level_checkpoint(soft, "grasp_easy", {"level": "grasp_easy", "method": "soft",
+                                                "train_config": TrainConfig(method="soft").to_dict()})
+    moved = tmp_path / "moved"
+    _save_level_checkpoint(moved, "grasp_easy", {"level": "car_launch", "method": "hard"})
+    base = ["kinetix", "eval", "--levels-dir", str(LEVELS_DIR), "--levels", "grasp_easy", "--episodes", "1",
+            "--out", str(tmp_path / "out"), "--no-progress", "--policy-dir", str(bc), "--methods", "naive,train_hard"]
+    cases = [
+        (base + ["--method-policy", f"train_hard={soft}"],
+         f"--method-policy train_hard={soft}: level 'grasp_easy': {str(soft / 'grasp_easy.npz')!r} is a soft "
+         f"fine-tune, but method 'train_hard' runs a hard fine-tune"),
+        (base + ["--method-policy", f"train_hard={moved}"], "holds the policy of level 'car_launch'"),
+        (base, f"--policy-dir {bc}: level 'grasp_easy': "
+               f"{str(bc / '24' / 'policies' / 'worlds_l_grasp_easy.pkl')!r} is a base policy, but method "
+               f"'train_hard' runs a hard fine-tune"),
+    ]
+    for argv, words in cases:
+        assert _cli_status(main, argv) == 2, argv
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and err.startswith("softrtc kinetix eval: error: "), err
+        assert words in err, err
+    assert not (tmp_path / "out").exists()
