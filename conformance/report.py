@@ -42,10 +42,12 @@ ABS_TOL = 1e-6
 class ThirdParty:
     adapter: str  # the adapter spec for load_adapter ([CF-12])
     notes: str  # module holding the hand-written text
+    cases: str | None = None  # module:function giving the implementation's own cases ([TP-8])
 
 
 THIRD_PARTY = {
-    "lerobot": ThirdParty("softrtc.conformance.adapters.lerobot:ADAPTER", "softrtc.conformance.adapters.lerobot_notes"),
+    "lerobot": ThirdParty("softrtc.conformance.adapters.lerobot:ADAPTER", "softrtc.conformance.adapters.lerobot_notes",
+                          "softrtc.conformance.adapters.lerobot_padding:implementation_cases"),
 }
 
 
@@ -147,7 +149,17 @@ def build(name: str, vectors_dir=None) -> dict:
                               for f, (calls, glue) in sorted(adapter_module.GLUE.items())},
         "glue_only": glue_only,
         "others": [{"name": n, "finding": t} for n, t in notes.OTHERS],
+        **_own_cases(tp, notes),
     }
+
+
+def _own_cases(tp: ThirdParty, notes) -> dict:
+    """The implementation's own cases and the notes' text on them ([TP-8]); nothing when it has none."""
+    if tp.cases is None:
+        return {}
+    module, fn = tp.cases.split(":")
+    return {"own_cases": {"title": notes.OWN_CASES["title"], "text": notes.OWN_CASES["text"],
+                          **getattr(importlib.import_module(module), fn)()}}
 
 
 def _worst(e: dict):
@@ -280,10 +292,28 @@ def render(doc: dict) -> str:
     L += ["", "Cases that test glue rather than the implementation:", ""]
     for fname, g in doc["glue_only"].items():
         L.append(f"- `{fname}` ({g['cases']} cases; {', '.join(g['requirements'])}): {g['reason']}")
+    if "own_cases" in doc:
+        L += _render_own_cases(doc["own_cases"])
     L += ["", "## Other RTC implementations looked for", ""]
     for o in doc["others"]:
         L.append(f"- {o['name']}: {o['finding']}")
     return "\n".join(L) + "\n"
+
+
+def _render_own_cases(own: dict) -> list[str]:
+    """The section of [TP-8]: one row per case, LeRobot's weights per code path and the [W-6] option each is."""
+    L = ["", f"## {own['title']}", "", own["text"], "",
+         "| H | d | left-over rows | window end e | path | weights | pulled toward 0 | [W-6] option |",
+         "|---|---|---|---|---|---|---|---|"]
+    for c in own["cases"]:
+        head = f"| {c['H']} | {c['d']} | {c['left_over_rows']} | {c['execution_horizon']} |"
+        for path in ("denoise_step", "rollout"):
+            if path in c:
+                r = c[path]
+                pulled = ", ".join(str(j) for j in r["pulled_toward_zero"]) or "none"
+                L.append(f"{head} {path} | {_cell(r['weights'])} | {pulled} | {r['option']} |")
+        L.append(f"{head} spec clip / zeros | {_cell(c['spec_clip'])} / {_cell(c['spec_zeros'])} | | |")
+    return L
 
 
 def summary(doc: dict) -> str:
@@ -355,6 +385,11 @@ def run_from_args(args) -> int:
         return command_error(prog, "--impl and --out are required (or --summary FILE.json)")
     if not str(args.out).endswith(".md"):
         return command_error(prog, f"--out must name a .md file, got {args.out}")
+    if not args.check:
+        try:  # at the door: both files the report writes are regular files of their own ([CF-15])
+            runner.check_output_paths({"--out": args.out, "--out's JSON": str(Path(args.out).with_suffix(".json"))})
+        except ValueError as exc:
+            return command_error(prog, exc)
     try:
         doc = build(args.impl, args.vectors)
     except (ReportError, runner.VectorError) as exc:

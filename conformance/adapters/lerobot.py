@@ -1,4 +1,4 @@
-"""Adapter of LeRobot's real-time chunking, ``lerobot.policies.rtc`` ([CF-7], [V-1], [V-4]).
+"""Adapter of LeRobot's real-time chunking, ``lerobot.policies.rtc`` ([CF-7], [V-1], [V-4], [TP-6], [TP-7]).
 
 Every function calls LeRobot's own code; nothing of RTC is re-implemented here:
 
@@ -7,25 +7,29 @@ Every function calls LeRobot's own code; nothing of RTC is re-implemented here:
   schedule of ``RTCConfig.prefix_attention_schedule`` ([W-3], [W-4], [W-8], [G-1]).
 - ``guidance_weight`` and ``guided_sample_window``: ``RTCProcessor.denoise_step``, the guided velocity
   of one step ([G-2]..[G-4]); its debug tracker reports the denoised estimate, the weighted error,
-  the pull-back and the guidance weight it used.
+  the pull-back and the guidance weight it used. From LeRobot 0.6 on, the Euler loop around it is
+  LeRobot's own ``lerobot.policies.common.flow_matching.euler_integrate``.
 - ``shift_prior`` and ``execute_chunks``: ``ActionQueue`` in RTC mode, which drops the new chunk's
   first ``real_delay`` actions and hands the unexecuted rest back as ``prev_chunk_left_over``
   ([X-3]..[X-5]).
 
-Glue, kept to the fewest lines and named in the compatibility report (:data:`GLUE`): the Euler loop
-that LeRobot writes inline in each flow policy (``pi0``, ``pi05``, ``smolvla``: ``dt = -1/T``,
-``time = 1 + k dt``, ``x += dt v``), the zero padding of the prior that ``denoise_step`` does inside
-([X-3]), the control loop that takes actions from the queue, and the test's velocity field (the
+Glue, kept to the fewest lines and named in the compatibility report (:data:`GLUE`): in LeRobot
+0.4.4 the Euler loop that each flow policy writes inline (``pi0``, ``pi05``, ``smolvla``: ``dt = -1/T``,
+``time = 1 + k dt``, ``x += dt v``); the zero padding of the prior that ``denoise_step`` does inside
+([X-3]); the control loop that takes actions from the queue; and the test's velocity field (the
 reference field of [F-1], ported to torch in the flipped convention, standing in for the policy).
 
 LeRobot runs flow time from 1 (noise) to 0 (data), so ``time_convention = "noise_at_1"`` ([V-1]).
 Its ``execution_horizon`` is the END of the guided window (our ``e``; ``H - s`` for [G-1]), not the
 execute horizon ``s`` ([V-4]); the conversion is made here, once.
 
-LeRobot's ``lerobot.policies`` package imports every policy's configuration, and with it LeRobot's
-dataset and vision stack (``datasets``, ``torchvision``, ``huggingface_hub``, ``draccus``). Its RTC
-modules need none of that: :func:`load_rtc` imports them with that package's ``__init__`` bypassed,
-so ``pip install --no-deps lerobot==0.4.4`` beside torch is the whole installation.
+LeRobot's package ``__init__`` files import far more than its RTC code uses: ``lerobot.policies``
+imports every policy's configuration (datasets, torchvision, huggingface_hub, draccus), and in 0.6
+``lerobot.policies.rtc`` imports ``lerobot.processor`` and ``lerobot.utils`` and ``lerobot.configs``
+imports its dataset and video configurations. The RTC modules themselves import only torch and the
+enum ``lerobot.configs.types.RTCAttentionSchedule``: :func:`load_rtc` imports them with those three
+``__init__`` files bypassed, so ``pip install --no-deps lerobot==X`` beside torch is the whole
+installation for either release ([TP-6]).
 """
 
 from __future__ import annotations
@@ -38,14 +42,80 @@ from pathlib import Path
 
 import numpy as np
 
-INSTALL_HINT = "pip install --no-deps lerobot==0.4.4 (its RTC modules need only torch)"
+INSTALL_HINT = ("pip install --no-deps lerobot==0.4.4 on Python 3.11, or lerobot==0.6.1 on Python 3.12 "
+                "(its RTC modules need only torch)")
 RTC_MODULES = ("configuration_rtc", "modeling_rtc", "action_queue")
+# Packages whose __init__ imports LeRobot's dataset, vision and processor stacks; bypassed while the
+# RTC modules import (parents first).
+BYPASSED = ("lerobot.configs", "lerobot.policies", "lerobot.policies.rtc")
+# LeRobot 0.6's shared Euler loop; absent in 0.4.4, where each policy writes the loop inline.
+EULER_MODULE = "lerobot.policies.common.flow_matching"
 
 # Spec schedule names ([W-3]) -> LeRobot's RTCAttentionSchedule members, and the [G-1] variants.
 SCHEDULES = {"zeros": "ZEROS", "ones": "ONES", "linear": "LINEAR", "exp": "EXP"}
 GUIDANCE_VARIANTS = {"hard": "zeros", "soft": "exp"}
 INFERENCE_METHODS = {"inference_hard": "hard", "inference_soft": "soft"}
 
+
+def load_rtc():
+    """LeRobot's RTC modules, the schedule enum and (0.6 on) ``euler_integrate``, as a dict of modules.
+
+    The ``__init__`` files of :data:`BYPASSED` import LeRobot's dataset, vision and processor stacks,
+    none of which the RTC modules use. When ``lerobot.policies`` is already imported (a full
+    installation in use), the modules are imported normally. Otherwise a bare package object (its
+    ``__path__`` only) stands in for each of those packages while the modules import, and is removed
+    afterwards, so a later ``import lerobot.policies`` runs the real package. ``lerobot.configs``'s
+    stand-in carries the one name the RTC modules take from it, ``RTCAttentionSchedule``. Raises
+    ImportError naming :data:`INSTALL_HINT` when LeRobot is not installed.
+    """
+    try:
+        lerobot = importlib.import_module("lerobot")
+    except ImportError as exc:
+        raise ImportError(f"LeRobot is not installed ({exc}); install it with: {INSTALL_HINT}") from None
+    names = [f"lerobot.policies.rtc.{m}" for m in RTC_MODULES]
+    if "lerobot.policies" in sys.modules:
+        return _import_all(names)
+    root = Path(lerobot.__file__).parent
+    stubs = {}
+    for name in BYPASSED:
+        if name in sys.modules:
+            continue
+        stub = types.ModuleType(name)
+        stub.__path__ = [str(root.joinpath(*name.split(".")[1:]))]
+        sys.modules[name] = stub
+        stubs[name] = stub
+    try:
+        enum = importlib.import_module("lerobot.configs.types").RTCAttentionSchedule
+        if "lerobot.configs" in stubs:
+            stubs["lerobot.configs"].RTCAttentionSchedule = enum
+        return _import_all(names)
+    finally:
+        for name, stub in stubs.items():
+            if sys.modules.get(name) is stub:
+                del sys.modules[name]
+
+
+def _import_all(names) -> dict:
+    mods = {n.rsplit(".", 1)[-1]: importlib.import_module(n) for n in names}
+    mods["types"] = importlib.import_module("lerobot.configs.types")
+    try:
+        mods["flow_matching"] = importlib.import_module(EULER_MODULE)
+    except ModuleNotFoundError as exc:  # LeRobot 0.4: no shared loop; only that module may be missing
+        if exc.name not in (EULER_MODULE, EULER_MODULE.rsplit(".", 1)[0]):
+            raise
+        mods["flow_matching"] = None
+    return mods
+
+
+_mods = load_rtc()
+RTCConfig = _mods["configuration_rtc"].RTCConfig
+RTCProcessor = _mods["modeling_rtc"].RTCProcessor
+ActionQueue = _mods["action_queue"].ActionQueue
+RTCAttentionSchedule = _mods["types"].RTCAttentionSchedule
+euler_integrate = getattr(_mods["flow_matching"], "euler_integrate", None)
+
+_LOOP = ("LeRobot's `euler_integrate`" if euler_integrate is not None
+         else "the Euler loop LeRobot writes inline in pi0 / pi05 / smolvla")
 # What each provided function exercises of LeRobot, and what is glue ([CF-7]); the report prints it.
 GLUE = {
     "prefix_weights": ("RTCProcessor.get_prefix_weights(d, e, H)", "none"),
@@ -56,14 +126,18 @@ GLUE = {
                        "the method's schedule and e = H - s"),
     "guidance_weight": ("RTCProcessor.denoise_step at flow time t' (its debug tracker's guidance weight)",
                         "a zero one-token state and prior passed to denoise_step"),
-    "guided_sample_window": ("RTCProcessor.denoise_step at every step (guided velocity, denoised estimate, "
-                             "weighted error, pull-back, guidance weight)",
-                             "the Euler loop LeRobot writes inline in pi0 / pi05 / smolvla, the prior's first "
-                             "H - s rows passed as prev_chunk_left_over (as ActionQueue.get_left_over gives "
-                             "them), and the test's velocity field"),
-    "naive_sample": ("RTCProcessor.denoise_step without a previous chunk (the first chunk's path: the "
-                     "policy's own velocity)",
-                     "the Euler loop and the test's velocity field; this function tests glue, not LeRobot"),
+    "guided_sample_window": (
+        "RTCProcessor.denoise_step at every step (guided velocity, denoised estimate, weighted error, "
+        "pull-back, guidance weight)" + (", inside euler_integrate" if euler_integrate is not None else ""),
+        ("" if euler_integrate is not None else _LOOP + ", ")
+        + "the prior's first H - s rows passed as prev_chunk_left_over (as ActionQueue.get_left_over gives "
+          "them), and the test's velocity field"),
+    "naive_sample": (
+        ("euler_integrate without RTC (the first chunk's path: the policy's own velocity)"
+         if euler_integrate is not None else
+         "RTCProcessor.denoise_step without a previous chunk (the first chunk's path: the policy's own velocity)"),
+        ("the test's velocity field" if euler_integrate is not None else
+         _LOOP + " and the test's velocity field; this function tests glue, not LeRobot")),
     "shift_prior": ("ActionQueue.merge / get / get_left_over",
                     "taking s actions from the queue, and the zero padding to H rows that "
                     "denoise_step does inside"),
@@ -71,40 +145,6 @@ GLUE = {
                        "the control loop: d_c actions taken while chunk c is computed, then s - d_c; the "
                        "chunk and token indices ride as two extra columns of the queue's processed actions"),
 }
-
-
-def load_rtc():
-    """LeRobot's RTC modules, imported without ``lerobot/policies/__init__.py``.
-
-    That ``__init__`` imports every policy configuration (and through them datasets, torchvision,
-    huggingface_hub, draccus), none of which the RTC modules use. When ``lerobot.policies`` is
-    already imported (a full installation in use), the modules are imported normally. Otherwise a
-    bare package object for ``lerobot.policies`` (its ``__path__`` only) is registered while they
-    import and removed afterwards, so a later ``import lerobot.policies`` runs the real package.
-    Raises ImportError naming :data:`INSTALL_HINT` when LeRobot is not installed.
-    """
-    try:
-        lerobot = importlib.import_module("lerobot")
-    except ImportError as exc:
-        raise ImportError(f"LeRobot is not installed ({exc}); install it with: {INSTALL_HINT}") from None
-    names = [f"lerobot.policies.rtc.{m}" for m in RTC_MODULES]
-    if "lerobot.policies" in sys.modules:
-        return tuple(importlib.import_module(n) for n in names)
-    stub = types.ModuleType("lerobot.policies")
-    stub.__path__ = [str(Path(lerobot.__file__).parent / "policies")]
-    sys.modules["lerobot.policies"] = stub
-    try:
-        return tuple(importlib.import_module(n) for n in names)
-    finally:
-        if sys.modules.get("lerobot.policies") is stub:
-            del sys.modules["lerobot.policies"]
-
-
-_config, _modeling, _queue = load_rtc()
-RTCConfig = _config.RTCConfig
-RTCProcessor = _modeling.RTCProcessor
-ActionQueue = _queue.ActionQueue
-RTCAttentionSchedule = importlib.import_module("lerobot.configs.types").RTCAttentionSchedule
 
 
 def versions() -> dict:
@@ -124,9 +164,9 @@ def _schedule(name):
     return RTCAttentionSchedule(SCHEDULES.get(name, name) if isinstance(name, str) else name)
 
 
-def _processor(schedule="linear", max_guidance=10.0, debug=False):
+def _processor(schedule="linear", max_guidance=10.0, debug=False, maxlen=1):
     return RTCProcessor(RTCConfig(enabled=True, prefix_attention_schedule=_schedule(schedule),
-                                  max_guidance_weight=max_guidance, debug=debug, debug_maxlen=1))
+                                  max_guidance_weight=max_guidance, debug=debug, debug_maxlen=maxlen))
 
 
 class LeRobotAdapter:
@@ -172,39 +212,27 @@ class LeRobotAdapter:
     def guided_sample_window(self, field, obs, noise, prior, guidance, T):
         torch = _torch()
         g = guidance
-        proc = _processor(g["schedule"], g["max_guidance"], debug=True)
-        u = FlippedField(field, obs)
         H = noise.shape[0]
+        proc = _processor(g["schedule"], g["max_guidance"], debug=True, maxlen=T)
         left_over = torch.as_tensor(prior, dtype=torch.float32)[: H - g["s"]]
-        x = torch.as_tensor(noise, dtype=torch.float32)
-        dt = -1.0 / T
-        trace = []
-        for k in range(T):
-            time = 1.0 + k * dt
-            proc.reset_tracker()
-            v = proc.denoise_step(x, left_over, g["d"], time, u.at(time), execution_horizon=g["end"])
-            step = proc.get_all_debug_steps()[-1]
-            nxt = x + dt * v
-            trace.append({"state": x, "time": torch.full((H,), time), "velocity": u.last,
-                          "denoised": step.x1_t, "error": step.err,
-                          "vjp": step.correction, "guidance_weight": step.guidance_weight,
-                          "guided_velocity": v, "next_state": nxt})
-            x = nxt
+        calls = Recorder(FlippedField(field, obs))
+        rtc = {"inference_delay": g["d"], "prev_chunk_left_over": left_over, "execution_horizon": g["end"]}
+        x = _euler(proc, calls, torch.as_tensor(noise, dtype=torch.float32), T, rtc)
+        steps = proc.get_all_debug_steps()
+        trace = [{"state": c["x"], "time": torch.full((H,), c["time"]), "velocity": c["v"],
+                  "denoised": _unbatch(st.x1_t), "error": _unbatch(st.err), "vjp": _unbatch(st.correction),
+                  "guidance_weight": st.guidance_weight, "guided_velocity": _unbatch(st.v_t),
+                  "next_state": _unbatch(st.x_t)}
+                 for c, st in zip(calls.calls, steps, strict=True)]
         return x, trace
 
     def naive_sample(self, field, obs, noise, T):
         torch = _torch()
-        proc = _processor()
-        u = FlippedField(field, obs)
-        x = torch.as_tensor(noise, dtype=torch.float32)
-        dt = -1.0 / T
-        trace = []
-        for k in range(T):
-            time = 1.0 + k * dt
-            v = proc.denoise_step(x, None, 0, time, u.at(time))
-            nxt = x + dt * v
-            trace.append({"state": x, "time": torch.full((x.shape[0],), time), "velocity": v, "next_state": nxt})
-            x = nxt
+        calls = Recorder(FlippedField(field, obs))
+        x = _euler(_processor(), calls, torch.as_tensor(noise, dtype=torch.float32), T, None)
+        nxt = [c["x"] for c in calls.calls[1:]] + [x]
+        trace = [{"state": c["x"], "time": torch.full((x.shape[0],), c["time"]), "velocity": c["v"],
+                  "next_state": n} for c, n in zip(calls.calls, nxt)]
         return x, trace
 
     # ---------------------------------------------------------------- execution ([X-3]..[X-5])
@@ -238,6 +266,55 @@ class LeRobotAdapter:
         return {"actions": rows[:, :A], "chunk_index": rows[:, A].long(), "token_index": rows[:, A + 1].long()}
 
 
+def _euler(proc, denoise, noise, T, rtc):
+    """``T`` Euler steps from flow time 1 to 0 with LeRobot's guided step ``denoise_step`` when ``rtc``
+    holds its inputs (delay, left-over, window end), the policy's own velocity otherwise.
+
+    LeRobot 0.6: its ``euler_integrate`` on a batch of one, which also records each step's state and
+    guided velocity in the processor's debug tracker. LeRobot 0.4 has no loop of its own: the glue
+    below is the loop its flow policies write inline, and it records the same two values.
+    """
+    torch = _torch()
+    if euler_integrate is not None:
+        extra = {"rtc_enabled": True, **rtc} if rtc is not None else {}
+        out = euler_integrate(lambda x, t: denoise(x, float(t[0])), noise.unsqueeze(0), T,
+                              rtc_processor=proc if rtc is not None else None, **extra)
+        return out.squeeze(0)
+    x = noise
+    dt = -1.0 / T
+    for k in range(T):  # glue: the inline loop of LeRobot 0.4's pi0 / pi05 / smolvla
+        time = 1.0 + k * dt
+        if rtc is None:
+            v = denoise(x, time)
+        else:
+            v = proc.denoise_step(x, rtc["prev_chunk_left_over"], rtc["inference_delay"], time,
+                                  lambda z, time=time: denoise(z, time), execution_horizon=rtc["execution_horizon"])
+        x = x + dt * v
+        if proc.is_debug_enabled():
+            proc.track(time=time, x_t=x, v_t=v)
+    return x
+
+
+def _unbatch(t):
+    """A tracked tensor without the batch axis that ``denoise_step`` / ``euler_integrate`` add."""
+    return t[0] if t is not None and t.dim() == 3 else t
+
+
+class Recorder:
+    """The test's policy as LeRobot's denoiser ``(x, time) -> velocity``, keeping each call's state,
+    time and unguided velocity for the trace (glue: LeRobot's tracker keeps the guided velocity only)."""
+
+    def __init__(self, field):
+        self.field = field
+        self.calls = []
+
+    def __call__(self, x, time: float):
+        state = x.reshape(self.field.H, -1)
+        v = self.field(state, time)
+        self.calls.append({"x": state.detach().clone(), "time": time, "v": v.detach().clone()})
+        return v.reshape(x.shape)
+
+
 def _take(queue, n) -> list:
     """Up to ``n`` actions from the queue, as a robot loop takes them (it idles when the queue is empty)."""
     out = []
@@ -253,8 +330,6 @@ class FlippedField:
     """The test's policy: the reference velocity field of [F-1] in torch, float32, flipped ([V-1]).
 
     ``u(x, t') = -v(x, 1 - t')`` with the same time for every token, as LeRobot's policies call it.
-    ``at(time)`` is the one-argument denoiser ``denoise_step`` takes; ``last`` keeps its latest output
-    (the trace's unguided velocity).
     """
 
     def __init__(self, params, obs):
@@ -262,14 +337,6 @@ class FlippedField:
         self.p = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in params.items()}
         self.obs = torch.as_tensor(obs, dtype=torch.float32)
         self.H = self.p["Wt"].shape[0] // 3
-        self.last = None
-
-    def at(self, time: float):
-        def denoise(x):
-            v = self(x.reshape(self.H, -1), time)
-            self.last = v
-            return v.reshape(x.shape)
-        return denoise
 
     def __call__(self, x, time: float):
         torch = _torch()

@@ -2,16 +2,31 @@
 ids, why each unsupported function is unsupported, which cases test glue, other implementations looked
 for. ``softrtc conformance report --impl lerobot`` stops when a failing id has no diagnosis here, when a
 diagnosis does not cover a function that fails, or when a diagnosed id no longer fails.
+
+One module serves both releases of the compatibility matrix ([TP-7]): LeRobot 0.4.4 on Python 3.11 and
+0.6.1 on Python 3.12. :data:`VERSION` is the installed release, and the few texts that differ between
+them (the shared Euler loop of 0.6, the queue's clamp of a negative delay) are chosen by it.
 """
 
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    VERSION = version("lerobot")
+except PackageNotFoundError:  # the adapter's import then fails with the install step ([TP-6])
+    VERSION = "not installed"
+# 0.6 has its own Euler loop (`euler_integrate`) and clamps a negative delay in `ActionQueue`.
+NEW = VERSION.split(".")[:2] >= ["0", "6"] and VERSION != "not installed"
+
 IMPLEMENTATION = "LeRobot"
-INSTALL = "pip install --no-deps lerobot==0.4.4"
-SOURCE = ("`lerobot/policies/rtc/` of LeRobot 0.4.4: `modeling_rtc.py` (`RTCProcessor.get_prefix_weights`, "
+INSTALL = ("pip install torch==2.13.0; pip install --no-deps lerobot==0.6.1 (Python 3.12)" if NEW
+           else "pip install --no-deps lerobot==0.4.4")
+SOURCE = (f"`lerobot/policies/rtc/` of LeRobot {VERSION}: `modeling_rtc.py` (`RTCProcessor.get_prefix_weights`, "
           "`RTCProcessor.denoise_step` and its debug tracker), `action_queue.py` (`ActionQueue`), "
-          "`configuration_rtc.py` (`RTCConfig`)")
+          "`configuration_rtc.py` (`RTCConfig`)"
+          + ("; `lerobot/policies/common/flow_matching.py` (`euler_integrate`)" if NEW else ""))
 
 # Interface functions the adapter does not provide, and why ([CF-9]).
-_TRAINING = ("LeRobot 0.4.4 has inference-time RTC only: no policy conditions training on a committed "
+_TRAINING = (f"LeRobot {VERSION} has inference-time RTC only: no policy conditions training on a committed "
              "prefix (its flow policies pi0, pi05 and smolvla train the plain flow-matching loss)")
 UNSUPPORTED_FUNCTIONS = {
     "endpoint": "LeRobot has no endpoint rules; the guided window's end is the number `execution_horizon` "
@@ -25,6 +40,8 @@ UNSUPPORTED_FUNCTIONS = {
     "loss": _TRAINING,
     "batch_loss": _TRAINING,
     "rtc_sample": _TRAINING + "; the training-time RTC sampler needs a policy trained so",
+    "rtc_sample_step": _TRAINING + "; the training-time RTC sampler needs a policy trained so, whatever its "
+                       "solver step",
     "velocity": "the velocity field is the test's stand-in for a policy, not part of LeRobot's RTC",
     "velocity_vjp": "LeRobot takes no VJP of the velocity field alone (its pull-back is taken through the "
                     "denoised estimate, checked by the guided cases)",
@@ -37,7 +54,7 @@ UNSUPPORTED_FUNCTIONS = {
 }
 
 # Functions whose cases test the adapter's glue rather than LeRobot.
-GLUE_ONLY = {
+GLUE_ONLY = {} if NEW else {
     "naive_sample": "LeRobot's only part is `denoise_step` returning the policy's own velocity when there is no "
                     "previous chunk; the Euler loop is the adapter's copy of the loop LeRobot writes inline in "
                     "each flow policy",
@@ -92,8 +109,9 @@ DIAGNOSES = {
         "kind": "consequence of G-3",
         "summary": _PULLBACK,
         "text": (
-            "The step, `x + dt (u - lam g)` with `dt = -1/T` in the loop LeRobot's flow policies write inline, "
-            "is [G-5] under [V-1]; it is given the pull-back of G-3."),
+            "The step, `x + dt (u - lam g)` with `dt = -1/T` in "
+            + ("LeRobot's `euler_integrate`" if NEW else "the loop LeRobot's flow policies write inline")
+            + ", is [G-5] under [V-1]; it is given the pull-back of G-3."),
     },
     "G-1": {
         "functions": ["guidance_weights", "guided_sample", "method_weights"],
@@ -129,9 +147,15 @@ DIAGNOSES = {
     },
     "S-1": {
         "functions": ["naive_sample"],
-        "kind": "glue, no bound on the step count",
-        "summary": "a step count above 65536 is accepted (the Euler loop is adapter glue)",
+        "kind": "no bound on the step count" if NEW else "glue, no bound on the step count",
+        "summary": ("a step count above 65536 is accepted by `euler_integrate`" if NEW else
+                    "a step count above 65536 is accepted (the Euler loop is adapter glue)"),
         "text": (
+            "LeRobot 0.6's `euler_integrate` (`lerobot/policies/common/flow_matching.py`), the loop its flow "
+            "policies now share, is the naive sampler when RTC is off (the first chunk's path), and it agrees "
+            "with [S-1] for every valid step count. The one failing case asks for `T = 65537` steps, beyond "
+            "[N-12]'s bound; `euler_integrate` bounds the count nowhere (the policies take it from their "
+            "configuration)." if NEW else
             "LeRobot has no naive sampler function: each flow policy writes its Euler loop inline, so the "
             "`naive_sample` cases run the adapter's copy of that loop ([TP-6]) and test glue, not LeRobot. "
             "The one failing case asks for `T = 65537` steps, beyond [N-12]'s bound; LeRobot's policies take "
@@ -184,7 +208,8 @@ DIAGNOSES = {
         "summary": "no upper bound on the chunk length or the step count",
         "text": (
             "LeRobot bounds no chunk length; `H = 4097` gives weights of that length. Nor does it bound the "
-            "number of Euler steps, and the adapter's glue loop (S-1) follows it, so `T = 65537` runs. The spec "
+            "number of Euler steps" + (" (`euler_integrate`, S-1)" if NEW else ", and the adapter's glue loop (S-1) follows it")
+            + ", so `T = 65537` runs. The spec "
             "bounds `H` at 4096 and `T` at 65536 so that every port knows where an input is an error; nothing "
             "in LeRobot depends on a bound."),
     },
@@ -197,8 +222,9 @@ DIAGNOSES = {
             "LeRobot's RTC code checks two inputs (`RTCConfig` rejects a guidance cap or a debug length "
             "`<= 0`, and the `max_guidance` cases that need it pass); everything else is taken as given. A "
             "delay beyond the overlap or below 0, a window end below the delay or past the chunk, a chunk "
-            "longer than 4096, flow time 1 and more than 65536 Euler steps (in the adapter's glue loop, which "
-            "follows LeRobot's unbounded step count) each return a result instead of raising `ValueError` (see "
+            "longer than 4096, flow time 1 and more than 65536 Euler steps ("
+            + ("in `euler_integrate`" if NEW else "in the adapter's glue loop, which follows LeRobot's unbounded "
+               "step count") + ") each return a result instead of raising `ValueError` (see "
             "W-1, G-1, G-4, S-1, S-8, X-1, X-2); an array flow time raises `TypeError` (CF-34); a float delay reaches Python's slicing, which raises `TypeError`."),
     },
     "X-1": {
@@ -211,8 +237,11 @@ DIAGNOSES = {
             "runs, exactly [X-4]. Delays [X-1] rejects are executed: a delay past the leftover (`d > H - s`) "
             "or past `s` leaves the queue empty for some steps (it returns None; the adapter's loop idles "
             "there as a robot loop does, so fewer than `C s` actions come out), and LeRobot only logs that the "
-            "consumed count differs from the delay; a negative delay keeps only the new chunk's last actions "
-            "(`actions[-1:]`); a float delay raises `TypeError` in the slice. In LeRobot's real-time loop the "
+            "consumed count differs from the delay; "
+            + ("a negative delay is clamped to 0 (0.6's `_replace_actions_queue`: the whole new chunk is "
+               "queued, so more than `s` of its actions run)" if NEW else
+               "a negative delay keeps only the new chunk's last actions (`actions[-1:]`)")
+            + "; a float delay raises `TypeError` in the slice. In LeRobot's real-time loop the "
             "delay is measured, so these are late chunks, which the spec leaves to the runtime of chapter R "
             "rather than to the executor."),
     },
@@ -228,6 +257,32 @@ DIAGNOSES = {
     },
 }
 
+# The implementation's own cases ([TP-8]): a left-over shorter than the guided window.
+OWN_CASES = {
+    "title": "A left-over shorter than the window ([W-6])",
+    "text": (
+        "When the queue holds fewer unexecuted actions than `execution_horizon`, the prior exists only for "
+        "the left-over's rows. `RTCProcessor.denoise_step` lowers `execution_horizon` to those rows, which "
+        "is [W-6]'s default `clip`. "
+        + ("LeRobot 0.6's rollout loop (`lerobot/rollout/inference/rtc.py`) pads the left-over with zeros "
+           "to `execution_horizon` rows first (`_normalize_prev_actions_length`, for stable compiled "
+           "inference), so `denoise_step` never sees it short and window tokens past the left-over are "
+           "pulled toward the zero action: [W-6]'s `zeros`, the option the spec keeps for reproducing the "
+           "paper's runs and does not choose by default, because it blends toward an action no plan "
+           "proposed. The two paths of 0.6.1 disagree with each other: the clip inside `denoise_step` "
+           "(\"nothing to merge\" past the left-over, says its comment) is undone by the padding before "
+           "it. Not a defect of [W-6], which allows both; spec strictness would be to pad for the compiler "
+           "but pass the left-over's length (or clip `execution_horizon` to it) so that the padded rows get "
+           "weight 0. Each row runs LeRobot's own code (a zero policy at flow time 0.5, a left-over of rows "
+           "1, 2, ..., r, so a guidance target of 0 marks a padded row); the `rollout` rows call 0.6.1's "
+           "padding function on the left-over before `denoise_step`."
+           if NEW else
+           "LeRobot 0.4.4 has no rollout loop in the package; its real-robot example passes "
+           "`ActionQueue.get_left_over()` to the policy as it is, so `denoise_step`'s clip is what runs. "
+           "Each row runs LeRobot's own code (a zero policy at flow time 0.5, a left-over of rows 1, 2, "
+           "..., r).")),
+}
+
 # Other public RTC implementations looked for on the package registries reachable here (PyPI, npm,
 # Debian), searched by name and description for rtc, real-time chunking, action chunk, inpainting,
 # prefix conditioning, openpi and lerobot.
@@ -236,8 +291,19 @@ OTHERS = [
      "[V-1])", "not on PyPI; installable from its repository only, so not testable here"),
     ("real-time-chunking-kinetix (the RTC paper's JAX code)",
      "not on PyPI; the project's own JAX twin and [V-4] follow its conventions"),
-    ("lerobot 0.5 and later", "need Python 3.12; this project runs on Python 3.11 here, whose newest LeRobot "
-     "is 0.4.4"),
+    ("lerobot 0.4.4 and 0.6.1", "both tested: one report per release (`conformance/thirdparty/lerobot/`), "
+     "0.4.4 on Python 3.11 and 0.6.1 (the newest, Python >= 3.12) on Python 3.12 ([TP-7])"),
+    ("GR00T N1.7 in lerobot 0.6.1 (`lerobot/policies/groot/`: `rtc_frozen_steps`, a ramp)",
+     "a second RTC of LeRobot's, not guidance: its action head (flow time 0 = noise to 1 = data) starts "
+     "the overlap's tokens from the previous chunk's actions instead of noise and scales their velocity by "
+     "`vel_strength`: 0 on the first `rtc_frozen_steps = min(d, overlap)` tokens, then a ramp "
+     "`1 - exp(-rate t)` normalised to 1 (`rtc_ramp_rate`, 6 by default) up to the overlap's end "
+     "(inpainting with a frozen prefix, no pull-back). The ramp is built inline in "
+     "`GR00TN17ActionHead.get_action_with_features` (`groot_n1_7.py`), between drawing the noise and "
+     "running the DiT, and its options in `GrootPolicy._prepare_n1_7_rtc_inputs`, which reads the GR00T "
+     "model's config: no function computes them without the GR00T model and its transformers stack, so "
+     "there is no second adapter. Its frozen prefix is [X-4]'s committed prefix; its ramp is a velocity "
+     "mask, which no interface function of [CF-7] takes"),
     ("flash-rt 0.2.0 (PyPI)",
      "installable (NumPy, PyYAML); its `flash_rt.runtime.rtc.AsyncChunkRunner` switches to a new chunk at the "
      "chunk's first action, with optional blending, which is not the committed prefix of [X-4], and its guided "
