@@ -1,14 +1,18 @@
 """Results of a conformance run and their reports ([CF-14], [CF-15], [CF-26]).
 
-:class:`RunResult` holds one :class:`CaseResult` per case; :func:`format_summary`
-prints the per-requirement summary, :func:`report_dict` the ``--report`` JSON and
-:func:`write_junit` the JUnit XML.
+:class:`RunResult` holds one :class:`CaseResult` per case and which vectors ran;
+:func:`format_summary` prints the per-requirement summary, :func:`report_dict` the
+``--report`` JSON and :func:`write_junit` the JUnit XML. :func:`check_output_paths`
+refuses output paths that clash or are special files before a run starts ([CF-15]).
 """
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import re
+import stat
 import xml.etree.ElementTree as ET
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -44,6 +48,8 @@ class RunResult:
     cases: list = field(default_factory=list)
     seconds: float = 0.0
     isolation: str = "in process"  # or "child process" ([CF-29])
+    # Which vectors ran ([CF-39]): vectors_io.describe_vectors's folder, index, files, digest, shipped.
+    vectors: dict | None = None
 
     @property
     def counts(self) -> dict:
@@ -80,6 +86,12 @@ def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> s
     """Human-readable summary: one line per requirement id, unsupported functions, failures ([CF-14])."""
     lines = [f"softrtc conformance: impl {res.impl} (adapter '{res.adapter_name}', {res.time_convention}), "
              f"vectors format {res.format_version}, spec {', '.join(res.spec_versions)}; {res.isolation}"]
+    v = res.vectors
+    if v is not None:  # [CF-39]
+        which = "the shipped set" if v["shipped"] else "NOT the shipped set"
+        lines.append(f"vectors: {which}, {v['folder']} ({len(v['files'])} files, "
+                     f"{'checked against its index.json' if v['index'] else 'no index.json'}; digest "
+                     f"sha256:{v['digest'][:16]})")
     for rid, e in res.by_requirement().items():
         n = e["pass"] + e["fail"]
         extra = f", {e['unsupported']} unsupported" if e["unsupported"] else ""
@@ -111,8 +123,9 @@ def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> s
         for c in fails[:max_failures]:
             lines.append(f"  FAIL {c.id}: {c.message}")
     n = res.counts
+    other = f" on {v['folder']}, NOT the shipped vectors" if v is not None and not v["shipped"] else ""
     lines.append(f"{'PASS' if res.ok else 'FAIL'}: {len(res.cases)} cases: {n['pass']} passed, {n['fail']} failed, "
-                 f"{n['unsupported']} unsupported; {res.seconds:.1f} s")
+                 f"{n['unsupported']} unsupported; {res.seconds:.1f} s{other}")
     if n["pass"] == 0 and n["fail"] == 0:
         lines.append("no supported case ran: the adapter provides none of the interface functions")
     return "\n".join(lines)
@@ -122,7 +135,7 @@ def report_dict(res: RunResult) -> dict:
     """The --report JSON document ([CF-15])."""
     return {"impl": res.impl, "adapter": res.adapter_name, "time_convention": res.time_convention,
             "format_version": res.format_version, "spec_versions": res.spec_versions, "ok": res.ok,
-            "isolation": res.isolation,
+            "isolation": res.isolation, "vectors": res.vectors,
             "seconds": round(res.seconds, 3), "counts": res.counts,
             "requirements": {k: {kk: (vv if not isinstance(vv, float) or math.isfinite(vv) else "inf")
                                  for kk, vv in v.items()} for k, v in res.by_requirement().items()},
@@ -136,11 +149,18 @@ def write_junit(res: RunResult, path) -> None:
                       tests=str(len(res.cases)), failures=str(res.counts["fail"]),
                       skipped=str(res.counts["unsupported"]), time=f"{res.seconds:.3f}")
     suites: dict[str, ET.Element] = {}
+    v = res.vectors
     for c in res.cases:
         s = suites.get(c.file)
         if s is None:
             s = suites[c.file] = ET.SubElement(root, "testsuite", name=f"conformance.{Path(c.file).stem}")
             s.attrib.update(tests="0", failures="0", skipped="0")
+            if v is not None:  # [CF-39]: which vectors ran, on every suite (testsuites takes no properties)
+                props = ET.SubElement(s, "properties")
+                for name, value in (("vectors_folder", v["folder"]), ("vectors_digest", v["digest"]),
+                                    ("vectors_shipped", "true" if v["shipped"] else "false"),
+                                    ("vector_file_sha256", v["files"].get(c.file, ""))):
+                    ET.SubElement(props, "property", name=name, value=value)
         s.set("tests", str(int(s.get("tests")) + 1))
         tc = ET.SubElement(s, "testcase", classname=f"conformance.{Path(c.file).stem}.{c.function}", name=c.id,
                            time=f"{c.seconds:.6f}")
@@ -154,3 +174,46 @@ def write_junit(res: RunResult, path) -> None:
             s.set("skipped", str(int(s.get("skipped")) + 1))
             ET.SubElement(tc, "skipped", message=c.message)
     write_atomic(path, lambda f: ET.ElementTree(root).write(f, encoding="utf-8", xml_declaration=True), binary=True)
+
+
+def write_report(res: RunResult, path) -> None:
+    """The --report JSON ([CF-15]), written whole or not at all (a temporary file beside it, then renamed)."""
+    text = json.dumps(report_dict(res), indent=1, sort_keys=True) + "\n"
+    write_atomic(path, lambda f: f.write(text))
+
+
+_SPECIAL = ((stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+            (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder"))
+
+
+def output_problem(path) -> str | None:
+    """Why ``path`` cannot be an output file, or None: an existing entry that is not a regular file (a
+    symbolic link, dangling or not, a FIFO, a device, a socket, a folder) is never replaced ([CF-15])."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return f"cannot be checked ({exc.strerror or exc})"
+    if stat.S_ISREG(mode):
+        return None
+    kind = next((name for test, name in _SPECIAL if test(mode)), "not a regular file")
+    return f"is {kind}; an output is written only as a regular file (a temporary file renamed into place)"
+
+
+def check_output_paths(paths: dict) -> None:
+    """ValueError (one line naming the option) unless every output path of ``paths`` ({option: path or
+    None}) may be written: not a special file (:func:`output_problem`), and no two naming the same file,
+    however spelt ([CF-15])."""
+    seen: dict[str, str] = {}
+    for option, path in paths.items():
+        if path is None:
+            continue
+        why = output_problem(path)
+        if why:
+            raise ValueError(f"{option} {os.fspath(path)} {why}")
+        key = os.path.realpath(path)
+        if key in seen:
+            raise ValueError(f"{seen[key]} and {option} name the same file {os.fspath(path)}; each output needs a "
+                             "file of its own")
+        seen[key] = option

@@ -18,7 +18,6 @@ onto the spec (t = 1 - t', v = -u) before comparing ([CF-10], [V-1]).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import shlex
 import sys
@@ -27,9 +26,7 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
-
 from .._cli_util import command_error, comma_list, input_dir, output_file, real_in
-from .._files import write_atomic
 from . import FORMAT_VERSION
 from .adapter import ALTERNATES, INTERFACE, AdapterError, load_adapter
 # The comparison lives in compare.py; its names stay importable from here.
@@ -38,8 +35,8 @@ from .compare import (CaseFailure, _decode, _flip_args, _flip_out, _number, _out
 from .invoke import NONFINITE, Invoker, function_of  # noqa: F401
 from .protocol import Child, ChildLost, ImplementationError
 from .results import (MAX_LISTED_FAILURES, TRACE_NOT_PROVIDED, UNSUPPORTED_CASE, CaseResult, RunResult,  # noqa: F401
-                      format_summary, report_dict, write_junit)
-from .vectors_io import VectorError, load_vectors, parse_json  # noqa: F401  (re-exported)
+                      check_output_paths, format_summary, report_dict, write_junit, write_report)
+from .vectors_io import VectorError, describe_vectors, load_vectors, parse_json  # noqa: F401  (re-exported)
 
 DEFAULT_CASE_TIMEOUT = 60.0
 DEFAULT_START_TIMEOUT = 120.0
@@ -263,7 +260,8 @@ def run(impl=None, vectors_dir=None, only=None, files=None, *, impl_cmd=None, in
         runner_impl.ready()
         result = RunResult(impl_name, runner_impl.name, runner_impl.time_convention, FORMAT_VERSION,
                            sorted({str(d.get("spec_version")) for d in files}),
-                           isolation="in process" if isinstance(runner_impl, InProcess) else "child process")
+                           isolation="in process" if isinstance(runner_impl, InProcess) else "child process",
+                           vectors=describe_vectors(files))
         jobs = []
         for data in files:
             for case in data["cases"]:
@@ -342,6 +340,11 @@ def run_from_args(args) -> int:
     impl_cmd = getattr(args, "impl_cmd", None)
     if impl_cmd is not None and getattr(args, "in_process", False):
         return command_error(prog, "--in-process runs an --impl adapter; a --impl-cmd program is always a child")
+    outputs = {"--report": args.report, "--junit": args.junit}
+    try:
+        check_output_paths(outputs)  # at the door: no case runs for a report that cannot be written
+    except ValueError as exc:
+        return command_error(prog, exc)
     try:
         res = run(args.impl, args.vectors, only, impl_cmd=impl_cmd, in_process=getattr(args, "in_process", False),
                   case_timeout=getattr(args, "case_timeout", DEFAULT_CASE_TIMEOUT),
@@ -355,14 +358,16 @@ def run_from_args(args) -> int:
     except BrokenPipeError as exc:  # the reader went away: the reports are still written, then main stops quietly
         closed = exc
     try:
+        check_output_paths(outputs)  # again: the run took a while
         for out in (args.report, args.junit):
             if out:
                 Path(out).parent.mkdir(parents=True, exist_ok=True)
         if args.report:
-            text = json.dumps(report_dict(res), indent=1, sort_keys=True) + "\n"
-            write_atomic(args.report, lambda f: f.write(text))
+            write_report(res, args.report)
         if args.junit:
             write_junit(res, args.junit)
+    except ValueError as exc:
+        return command_error(prog, exc)
     except OSError as exc:
         return command_error(prog, f"cannot write report: {exc}")
     if closed is not None:
