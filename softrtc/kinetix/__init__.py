@@ -27,6 +27,9 @@ _ENV_NAMES = {
     "bench_bare_env",
     "make_random_rollout",
     "random_actions",
+    "check_level_name",
+    "level_index",
+    "package_level_names",
 }
 _DATA_NAMES = {
     "EXPERT_KEYS",

@@ -58,8 +58,7 @@ def train_bc(data_dir: str | os.PathLike, level: str, out_dir: str | os.PathLike
              warmup_steps: int = 1000, seed: int = 0, resume: bool = True, progress: bool = True,
              clock: Callable[[], float] = time.monotonic) -> dict:
     """Train (or continue) the base policy of ``level`` for ``epochs`` epochs ([KP-11], [KP-12])."""
-    if level not in kenv.LEVEL_NAMES:
-        raise ValueError(f"level must be one of {', '.join(kenv.LEVEL_NAMES)}, got {level!r}")
+    kenv.check_level_name(level, "level")
     epochs = check_int("epochs", epochs, 1, 100000)
     seed = check_int("seed", seed, 0, 2**32 - 1)
     policy_config = PolicyConfig() if policy_config is None else policy_config

@@ -34,8 +34,7 @@ def bench_harness(level: str = "grasp_easy", num_envs: int = 64, method: str = "
     measured with :func:`softrtc.kinetix.env.bench_bare_env` on the same
     level, envs and steps. ``ratio = harness / bare``.
     """
-    if level not in kenv.LEVEL_NAMES:
-        raise ValueError(f"level must be one of {', '.join(kenv.LEVEL_NAMES)}, got {level!r}")
+    kenv.check_level_name(level, "level")
     num_envs = check_int("num_envs", num_envs, 1, NUM_ENVS_MAX)
     seed = check_int("seed", seed, 0, 2**32 - 1)
     repeats = check_int("repeats", repeats, 1, REPEATS_MAX)

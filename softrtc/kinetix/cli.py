@@ -56,7 +56,9 @@ def add_subparsers(subparsers) -> None:
     kin.set_defaults(func=group_help(kin))
 
     ev = sub.add_parser("eval", help="run the evaluation protocol and write CSV + Markdown results")
-    ev.add_argument("--levels", type=_levels, default=None, help="comma-separated level names (default: all 12)")
+    ev.add_argument("--levels", type=_levels, default=None,
+                    help="comma-separated level names: the benchmark's 12 (default: all 12) or kinetix-env levels "
+                         "<set>_<name>[@own] (see `softrtc kinetix levels`)")
     ev.add_argument("--episodes", type=int_in("value", 1, EPISODES_MAX), default=32,
                     help="episodes per level, delay and method (default 32)")
     ev.add_argument("--methods", type=_methods, default=None,
@@ -120,12 +122,34 @@ def add_subparsers(subparsers) -> None:
     be.add_argument("--no-progress", action="store_true", help="hide progress bars")
     be.set_defaults(func=_bench)
 
+    lv = sub.add_parser("levels", help="list the level names every kinetix command accepts")
+    lv.set_defaults(func=_list_levels)
+
     from .pipeline_cli import add_cache_options, add_distributed_options, add_pipeline_subparsers
 
     for p in (ev, ft):
         add_cache_options(p)
     add_distributed_options(ev)
     add_pipeline_subparsers(sub)
+
+
+def _list_levels(args) -> int:
+    """The benchmark's 12 names, then every kinetix-env level with its sizes ([K-20], [K-21])."""
+    from . import levels as klev
+
+    print("benchmark levels (files in --levels-dir, default ../shared/kinetix-levels):")
+    print("  " + ", ".join(klev.LEVEL_NAMES))
+    print(f"kinetix-env levels ({klev.package_levels_dir()}), padded to the benchmark's sizes; "
+          f"append {klev.OWN_SHAPES_SUFFIX} for the level's own sizes:")
+    print(f"  {'name':<36} polygons circles joints thrusters")
+    for name in klev.package_level_names():
+        st, stem = name.split("_", 1)
+        raw = json.loads((klev.package_levels_dir() / st / f"{stem}.json").read_text())["static_env_params"]
+        sizes = [raw.get(f) for f in klev.LARGE_ENV_PARAMS]
+        fits = all(v is not None and v <= klev.LARGE_ENV_PARAMS[f] for f, v in zip(klev.LARGE_ENV_PARAMS, sizes))
+        print(f"  {name:<36} {sizes[0]:>8} {sizes[1]:>7} {sizes[2]:>6} {sizes[3]:>9}"
+              + ("" if fits else f"  (only {name}{klev.OWN_SHAPES_SUFFIX})"))
+    return 0
 
 
 def _eval(args) -> int:
@@ -200,15 +224,20 @@ def _eval_inner(args) -> int:
                 check_level_role(cache[(d, level)][1], spec.method, spec.window)
             except ValueError as exc:
                 raise ValueError(f"{option}: level {level!r}: {exc}") from None
-    fresh = None
+    fresh: dict = {}  # one fresh policy per observation width ([K-21]: a level at its own sizes has its own)
     if any(d is None for _, d in sources.values()):
         seed = 0 if args.init_seed is None else args.init_seed
-        fresh = FlowPolicy(obs_dim=kenv.OBS_DIM, action_dim=kenv.ACTION_DIM, config=PolicyConfig(),
-                           rngs=nnx.Rngs(seed))
+        for level in config.levels:
+            obs_dim = (kenv.OBS_DIM if kenv.level_static_env_params(level) == kenv.benchmark_static_env_params()
+                       else kenv.make_env(level, args.levels_dir).obs_dim)
+            if obs_dim not in fresh:
+                fresh[obs_dim] = FlowPolicy(obs_dim=obs_dim, action_dim=kenv.ACTION_DIM, config=PolicyConfig(),
+                                            rngs=nnx.Rngs(seed))
+            fresh[level] = fresh[obs_dim]
 
     def policies(spec, level):
         d = sources[spec.label][1]
-        return fresh if d is None else cache[(d, level)][0]
+        return fresh[level] if d is None else cache[(d, level)][0]
 
     from .distributed import is_writer
 
@@ -255,14 +284,16 @@ def _finetune_inner(args) -> int:
     if args.levels:
         levels = list(args.levels)
     else:
-        levels = [lv for lv in kenv.LEVEL_NAMES if (data_dir / kdata.expert_data_filename(lv)).is_file()]
+        # The benchmark's levels in their order, then package levels ([K-20]) by name.
+        found = {p.name[len("worlds_l_"):-len(".npz")] for p in data_dir.glob("worlds_l_*.npz")}
+        levels = [lv for lv in kenv.LEVEL_NAMES if lv in found]
+        levels += sorted(lv for lv in found if kenv.is_package_level(lv))
         if not levels:
             raise FileNotFoundError(f"no worlds_l_<level>.npz expert data files in {data_dir}")
     from .finetune import bc_policy_shape, find_bc_file
 
     for lv in levels:  # every level's inputs exist, and fit --d-max, before the first one trains
-        if lv not in kenv.LEVEL_NAMES:
-            raise ValueError(f"--levels entry {lv!r} is not a level; choose from {', '.join(kenv.LEVEL_NAMES)}")
+        kenv.check_level_name(lv, "--levels entry")
         if not (data_dir / kdata.expert_data_filename(lv)).is_file():
             raise FileNotFoundError(f"--data {data_dir} has no {kdata.expert_data_filename(lv)}")
         try:

@@ -32,10 +32,19 @@ from .levels import (
     MAX_TIMESTEPS,
     NUM_MOTOR_BINDINGS,
     NUM_THRUSTER_BINDINGS,
+    LEVELS_HINT,
+    OWN_SHAPES_SUFFIX,
+    PACKAGE_SETS,
     _check_level_name,
     benchmark_static_env_params,
+    check_level_name,
     default_levels_dir,
+    is_package_level,
+    level_index,
+    level_static_env_params,
     load_level,
+    package_level_names,
+    package_levels_dir,
     project_root,
     resolve_levels_dir,
 )
@@ -52,12 +61,15 @@ __all__ = [
     "LEVEL_NAMES", "LARGE_ENV_PARAMS", "FRAME_SKIP", "NUM_MOTOR_BINDINGS", "NUM_THRUSTER_BINDINGS",
     "MAX_TIMESTEPS", "ACTION_NOISE_STD", "OBS_DIM", "ACTION_DIM", "project_root", "default_levels_dir",
     "resolve_levels_dir", "benchmark_static_env_params", "load_level", "KinetixTask", "make_env", "strong_types",
-    "random_actions", "make_random_rollout", "bench_bare_env",
+    "random_actions", "make_random_rollout", "bench_bare_env", "LEVELS_HINT", "OWN_SHAPES_SUFFIX", "PACKAGE_SETS",
+    "check_level_name", "is_package_level", "level_index", "level_static_env_params", "package_level_names",
+    "package_levels_dir",
 ]
 
 # [K-8] std of the Gaussian noise added to every executed action.
 ACTION_NOISE_STD = 0.1
-# [K-5] dimensions of the symbolic-flat observation and the continuous action.
+# [K-5] dimensions of the symbolic-flat observation and the continuous action (every level at the
+# benchmark's sizes; a level at its own sizes has its own obs_dim, [K-21]).
 OBS_DIM = 679
 ACTION_DIM = NUM_MOTOR_BINDINGS + NUM_THRUSTER_BINDINGS
 
@@ -251,17 +263,17 @@ def make_env(
     levels_dir: str | os.PathLike | None = None,
     action_noise_std: float = ACTION_NOISE_STD,
 ) -> KinetixTask:
-    """Build the benchmark env for ``level_name`` [K-1]..[K-6].
+    """Build the benchmark env for ``level_name`` [K-1]..[K-6], [K-20]..[K-21].
 
     ``levels_dir`` defaults to ``<project root>/../shared/kinetix-levels``
-    [K-2]. ``action_noise_std`` (default 0.1 [K-8]) may be set to 0 for
+    [K-2]; a package level ([K-20]) is read from kinetix-env instead. ``action_noise_std`` (default 0.1 [K-8]) may be set to 0 for
     noiseless execution.
     """
     _check_level_name(level_name)
     action_noise_std = _check_nonneg_float("action_noise_std", action_noise_std)
     d = resolve_levels_dir(levels_dir, (level_name,))
     level = load_level(level_name, d)
-    static = benchmark_static_env_params()
+    static = level_static_env_params(level_name)
     params = EnvParams()
     # reset_fn returning the level makes kinetix's auto-reset replay the same
     # level, as the benchmark's AutoReplayWrapper did [K-9].

@@ -70,7 +70,15 @@ def evaluate(config: EvalConfig, policies, *, progress: bool = True) -> dict:
     if not isinstance(progress, bool):
         raise ValueError(f"progress must be a bool, got {progress!r}")
     levels_dir = kenv.resolve_levels_dir(config.levels_dir, config.levels)
-    template = kenv.make_env(config.levels[0], levels_dir)
+    # One template task per set of static sizes: levels at the benchmark's sizes share a compiled
+    # rollout ([KE-3]); a level at its own sizes ([K-21]) gets its own.
+    templates: dict = {}
+    level_template: dict = {}
+    for level in config.levels:
+        static = kenv.level_static_env_params(level)
+        if static not in templates:
+            templates[static] = kenv.make_env(level, levels_dir)
+        level_template[level] = templates[static]
     E, ds = config.episodes, config.delays
     n = E * len(ds)
     delays = np.repeat(np.asarray(ds, np.int64), E)
@@ -80,6 +88,7 @@ def evaluate(config: EvalConfig, policies, *, progress: bool = True) -> dict:
     for spec in config.methods:
         for level in config.levels:
             pol = _resolve_policy(policies, spec, level)
+            template = level_template[level]
             if (pol.obs_dim, pol.action_dim) != (template.obs_dim, template.action_dim):
                 raise ValueError(f"policies must have obs_dim={template.obs_dim} and action_dim="
                                  f"{template.action_dim} (the levels'), got {pol.obs_dim} and {pol.action_dim} "
@@ -102,7 +111,8 @@ def evaluate(config: EvalConfig, policies, *, progress: bool = True) -> dict:
             for level in config.levels:
                 pol = pols[(spec.label, level)]
                 fam = method_family(spec.method)
-                rkey = (fam, pol.obs_dim, pol.action_dim, pol.config)
+                template = level_template[level]
+                rkey = (fam, pol.obs_dim, pol.action_dim, pol.config, template.static_env_params)
                 if rkey not in rollouts:
                     rollouts[rkey] = make_rollout(template, pol, fam, n, config.execute_horizon,
                                                   config.num_flow_steps, config.episode_steps)

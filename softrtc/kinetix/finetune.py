@@ -31,15 +31,14 @@ from softrtc.reference import weights as ref_weights
 from softrtc.reference.methods import METHODS
 
 from . import data as kdata
-from .env import LEVEL_NAMES
+from .env import check_level_name
 
 __all__ = ["infer_policy_shape", "find_bc_file", "bc_policy_shape", "load_bc_policy", "find_level_policy_file",
            "load_level_policy", "read_level_policy", "check_level_role", "method_role", "ROLES", "finetune_level"]
 
 
 def _check_level(level: Any) -> str:
-    if level not in LEVEL_NAMES:
-        raise ValueError(f"level must be one of {', '.join(LEVEL_NAMES)}, got {level!r}")
+    check_level_name(level, "level")
     return level
 
 

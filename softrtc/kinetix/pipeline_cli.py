@@ -1,4 +1,5 @@
-"""``softrtc kinetix {train-expert, generate-data, train-bc}``: the release's pipeline ([KP-13]),
+"""``softrtc kinetix {train-expert, generate-data, train-bc, screen}``: the release's pipeline ([KP-13])
+and the level screen ([KS-1]),
 and the options every Kinetix command shares: the compile cache ([KC-1]) and, for ``eval``, the
 process group of ``jax.distributed`` ([KD-1]).
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .._cli_util import command_error, comma_list, input_dir, int_in, output_dir, real_in
+from .limits import EPISODES_MAX
 
 __all__ = ["add_cache_options", "apply_cache_options", "add_distributed_options", "apply_distributed_options",
            "add_pipeline_subparsers"]
@@ -120,6 +122,31 @@ def add_pipeline_subparsers(sub) -> None:
     _common(tb, levels_dir=False)
     tb.set_defaults(func=_train_bc)
 
+    sc = sub.add_parser("screen", help="screen candidate levels: constant and random actions, a short PPO run, "
+                                       "the expert under delay; keep or drop each, with reasons")
+    sc.add_argument("--levels", type=_levels, required=True,
+                    help="comma-separated level names (e.g. m_h5_angry_birds; see `softrtc kinetix levels`)")
+    sc.add_argument("--out", type=output_dir(), required=True,
+                    help="output folder (<level>/..., screen.json, screen.md); a rerun continues where it stopped")
+    sc.add_argument("--ppo-steps", type=int_in("value", 1, 1 << 40), default=200_000,
+                    help="PPO env steps per level, rounded up to whole iterations (default 200000)")
+    sc.add_argument("--episodes", type=int_in("value", 1, EPISODES_MAX), default=64,
+                    help="episodes per constant action, for random actions and per delay (default 64)")
+    sc.add_argument("--delays", type=comma_list("value", int_in("each delay", 0, 64)), default=[0, 1, 2, 4],
+                    help="delays of the expert, increasing from 0 (default 0,1,2,4)")
+    sc.add_argument("--const-threshold", type=real_in("value", 0.0, 1.0), default=0.5,
+                    help="a constant action solving at least this rate drops the level (default 0.5)")
+    sc.add_argument("--expert-threshold", type=real_in("value", 0.0, 1.0), default=0.8,
+                    help="the expert's solve rate at d = 0 a kept level needs (default 0.8)")
+    sc.add_argument("--min-drop", type=real_in("value", 0.0, 1.0), default=0.2,
+                    help="least fall of the expert's solve rate from d = 0 to the largest delay (default 0.2)")
+    sc.add_argument("--ppo-envs", type=int_in("value", 1, 1 << 16), default=32, help="PPO envs (default 32)")
+    sc.add_argument("--ppo-num-steps", type=int_in("value", 1, 1 << 16), default=256,
+                    help="PPO steps per env and iteration (default 256)")
+    sc.add_argument("--ppo-minibatches", type=int_in("value", 1, 1 << 20), default=4, help="default 4")
+    _common(sc)
+    sc.set_defaults(func=_screen)
+
 
 def _common(p, *, seed: bool = True, levels_dir: bool = True) -> None:
     if seed:
@@ -132,11 +159,10 @@ def _common(p, *, seed: bool = True, levels_dir: bool = True) -> None:
 
 
 def _levels_checked(levels) -> list:
-    from .env import LEVEL_NAMES
+    from .env import check_level_name
 
     for lv in levels:
-        if lv not in LEVEL_NAMES:
-            raise ValueError(f"--levels entry {lv!r} is not a level; choose from {', '.join(LEVEL_NAMES)}")
+        check_level_name(lv, "--levels entry")
     if len(set(levels)) != len(levels):
         raise ValueError("--levels names a level twice")
     return list(levels)
@@ -191,6 +217,25 @@ def _generate_data(args) -> int:
         return 0
 
     return _run("generate-data", body, args)
+
+
+def _screen(args) -> int:
+    def body(args):
+        from .ppo import PPOConfig
+        from .screen import ScreenConfig, screen_levels
+
+        levels = _levels_checked(args.levels)
+        ppo = PPOConfig(num_envs=args.ppo_envs, num_steps=args.ppo_num_steps, num_minibatches=args.ppo_minibatches)
+        config = ScreenConfig(ppo_steps=args.ppo_steps, episodes=args.episodes, delays=tuple(args.delays),
+                              seed=args.seed, const_threshold=args.const_threshold,
+                              expert_threshold=args.expert_threshold, min_drop=args.min_drop, ppo=ppo)
+        results = screen_levels(levels, args.out, config, levels_dir=args.levels_dir, progress=not args.no_progress)
+        for r in results:
+            print(f"{r['level']}: {'kept' if r['kept'] else 'dropped'}: " + "; ".join(r["reasons"]))
+        print(f"wrote {Path(args.out) / 'screen.json'} and {Path(args.out) / 'screen.md'}")
+        return 0
+
+    return _run("screen", body, args)
 
 
 def _train_bc(args) -> int:

@@ -275,8 +275,7 @@ def train_expert(level: str, run_dir: str | os.PathLike, *, updates: int, seed: 
     never interrupted, [KP-7]). ``max_minutes`` (wall clock, read from ``clock``) stops after the
     first block that ends past it ([KP-8]). Returns a summary with the last block's stats.
     """
-    if level not in kenv.LEVEL_NAMES:
-        raise ValueError(f"level must be one of {', '.join(kenv.LEVEL_NAMES)}, got {level!r}")
+    kenv.check_level_name(level, "level")
     updates = check_int("updates", updates, 1, 1 << 24)
     seed = check_int("seed", seed, 0, 2**31 - 1)
     log_interval = check_int("log_interval", log_interval, 1, 1 << 20)
@@ -291,7 +290,7 @@ def train_expert(level: str, run_dir: str | os.PathLike, *, updates: int, seed: 
     paths = expert_paths(run_dir, seed, level)
     task = kenv.make_env(level, levels_dir)
     init, update = _ppo_programs(task, config)
-    state = init(jax.random.fold_in(jax.random.key(seed), kenv.LEVEL_NAMES.index(level)))
+    state = init(jax.random.fold_in(jax.random.key(seed), kenv.level_index(level)))
     meta = {"level": level, "seed": seed, "config": config.to_dict(), "format": 1}
     rows: list[dict] = []
     wall0 = 0.0

@@ -54,12 +54,11 @@ class EvalConfig:
         levels = _as_tuple("levels", self.levels, "distinct level names", single=(str,))
         for lv in levels:
             if not isinstance(lv, str):
-                raise ValueError(f"levels entries must be level names among {', '.join(kenv.LEVEL_NAMES)}, got {lv!r}")
+                kenv.check_level_name(lv, "levels entries")
         if not levels or len(set(levels)) != len(levels):
             raise ValueError(f"levels must be a non-empty sequence of distinct level names, got {self.levels!r}")
         for lv in levels:
-            if lv not in kenv.LEVEL_NAMES:
-                raise ValueError(f"levels entries must be among {', '.join(kenv.LEVEL_NAMES)}, got {lv!r}")
+            kenv.check_level_name(lv, "levels entries")
         object.__setattr__(self, "levels", levels)
         meths = tuple(m if isinstance(m, MethodSpec) else parse_method(m) for m in
                       _as_tuple("methods", self.methods, "distinct methods", single=(str, MethodSpec)))

@@ -56,8 +56,7 @@ def select_experts(run_dir: str | os.PathLike, level: str, solve_rate_threshold:
 
     Returns ``[{"seed_dir", "update", "path", "solved", "good"}]`` in folder-name order.
     """
-    if level not in kenv.LEVEL_NAMES:
-        raise ValueError(f"level must be one of {', '.join(kenv.LEVEL_NAMES)}, got {level!r}")
+    kenv.check_level_name(level, "level")
     if isinstance(solve_rate_threshold, bool) or not isinstance(solve_rate_threshold, (int, float)) \
             or not 0.0 <= solve_rate_threshold <= 1.0:
         raise ValueError(f"solve_rate_threshold must be a real number in [0, 1], got {solve_rate_threshold!r}")
@@ -145,7 +144,7 @@ def generate_data(run_dir: str | os.PathLike, level: str, *, out_dir: str | os.P
     run_block = jax.jit(lambda c: jax.lax.scan(step, c, None, length=batch_size), donate_argnums=0)
     # Strong types: the carry fed back block after block is then one program input (one compile).
     carry = jax.jit(lambda k: kenv.strong_types(init(k)))(jax.random.fold_in(jax.random.key(seed),
-                                                                             kenv.LEVEL_NAMES.index(level)))
+                                                                             kenv.level_index(level)))
     blocks = []
     with tqdm(total=per_env * E, desc=f"generate-data {level}", unit="step", disable=not progress,
               file=sys.stderr) as bar:

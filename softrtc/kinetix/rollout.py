@@ -46,10 +46,9 @@ def episode_keys(seed: int, level: str, episodes: int) -> jax.Array:
     (common random numbers).
     """
     seed = check_int("seed", seed, 0, 2**32 - 1)
-    if level not in kenv.LEVEL_NAMES:
-        raise ValueError(f"level must be one of {', '.join(kenv.LEVEL_NAMES)}, got {level!r}")
+    kenv.check_level_name(level, "level")
     episodes = check_int("episodes", episodes, 1, 2**20)
-    base = jax.random.fold_in(jax.random.key(seed), kenv.LEVEL_NAMES.index(level))
+    base = jax.random.fold_in(jax.random.key(seed), kenv.level_index(level))
     return jax.vmap(lambda e: jax.random.fold_in(base, e))(jnp.arange(episodes, dtype=jnp.uint32))
 
 
@@ -137,6 +136,9 @@ def _level_state(template, level: str):
     """Loaded level states, cached per (levels dir, level): parsing a level file takes seconds."""
     if level == template.level_name:
         return template.level
+    if kenv.level_static_env_params(level) != template.static_env_params:
+        raise ValueError(f"level {level!r} runs at other static sizes than the rollout's level "
+                         f"{template.level_name!r} ([K-21]); build a rollout from its own task")
     key = (str(template.levels_dir), level)
     if key not in _LEVELS:
         _LEVELS[key] = kenv.load_level(level, template.levels_dir)
@@ -192,8 +194,7 @@ class Rollout:
             raise ValueError(f"spec must be a MethodSpec, got {type(spec).__name__}")
         if method_family(spec.method) != self.family:
             raise ValueError(f"spec.method must belong to the {self.family!r} family of this rollout, got {spec.method!r}")
-        if level not in kenv.LEVEL_NAMES:
-            raise ValueError(f"level must be one of {', '.join(kenv.LEVEL_NAMES)}, got {level!r}")
+        kenv.check_level_name(level, "level")
         keys = jnp.asarray(keys)
         if not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key) or keys.shape != (self.num_envs,):
             raise ValueError(f"keys must be a typed PRNG key array of shape ({self.num_envs},), "
