@@ -194,9 +194,9 @@ def test_two_processes_share_one_cache_folder(tmp_path):
 
 
 def test_bench_ratios_and_table_by_hand():
-    """KC-6: warm/cold, rollout cold compile / bare env's, throughput / bare env's and the policy-alone bound
-    bare / (bare + policy), from hand values; the table prints them with the targets; a family without the
-    bare env is an error."""
+    """KC-6: warm/cold, rollout cold compile / bare env's, throughput / bare env's, the policy-alone bound
+    bare / (bare + policy) and the harness ratio rollout / (bare + policy alone), overall and per round,
+    from hand values; the table prints them with the targets; a family without the bare env is an error."""
     from softrtc.kinetix.compile_bench import add_policy_bounds, add_ratios, format_compile_bench
 
     progs = {"bare": {"cold_s": 20.0, "warm_s": 1.0, "run_s": 16.0, "warm_source": "disk"},
@@ -219,6 +219,21 @@ def test_bench_ratios_and_table_by_hand():
                                  "policy_alone": alone})
     assert ("policy alone, rtc: 64 chunk requests x 64 envs, no env step | run 4.0 s | bare env + policy alone "
             "bound the throughput at 0.800x") in text
+    # [KC-6] the throughput target: rollout 20 s / (bare 16 s + policy alone 4 s) = 1.0; per round from the
+    # rounds' own runs: 21 / (17 + 4) = 1.0 and 22 / (16 + 4) = 1.1.
+    from softrtc.kinetix.compile_bench import HARNESS_TARGET, harness_ratios
+
+    timed = {"bare": dict(out["bare"], run_times_s=[17.0, 16.0]), "rtc": dict(out["rtc"], run_times_s=[21.0, 22.0])}
+    h = harness_ratios(timed, {"rtc": dict(alone["rtc"], run_times_s=[4.0, 4.0])})
+    assert h["rtc"]["over_parts"] == 1.0 and h["rtc"]["by_round"] == [1.0, 1.1] and HARNESS_TARGET == 1.10
+    text = format_compile_bench({"level": "grasp_easy", "num_envs": 64, "env_steps": 16384, "policy_params": 10,
+                                 "num_devices": 1, "device": "cpu", "cpu": "x", "programs": timed,
+                                 "policy_alone": {"rtc": dict(alone["rtc"], run_times_s=[4.0, 4.0])}})
+    assert ("harness, rtc: rollout 20.0 s / (bare env 16.0 s + policy alone 4.0 s) = 1.000x (per round 1.000 to "
+            "1.100, median 1.050)") in text
+    assert "rollout run time <= 1.10x (bare env + policy alone) in the same rounds" in text
+    with pytest.raises(ValueError, match="^programs must hold the rollout of every policy_alone family"):
+        harness_ratios({"bare": out["bare"]}, alone)
     with pytest.raises(ValueError, match="^programs must hold 'bare'"):
         add_ratios({"rtc": progs["rtc"]}, 10)
     with pytest.raises(ValueError, match="^programs entries must have a positive float 'run_s'"):
