@@ -169,3 +169,12 @@ def test_a_minimal_hand_made_file_still_reads(tmp_path):
     schema = json.loads((ROOT / "spec" / "vectors.schema.json").read_text())
     assert not list(jsonschema.Draft202012Validator(schema).iter_errors(
         {"format_version": "1.2", "cases": [_case()]}))
+
+
+def test_the_schema_names_every_interface_function():
+    """[CF-38], [CF-22], [CF-7] The schema's enumeration of case functions is the interface of [CF-7]: a function
+    added to one and not the other would make the reader and the schema disagree on which files are valid."""
+    from softrtc.conformance.adapter import INTERFACE
+
+    schema = json.loads((ROOT / "spec" / "vectors.schema.json").read_text())
+    assert sorted(schema["$defs"]["case"]["properties"]["function"]["enum"]) == sorted(INTERFACE)
