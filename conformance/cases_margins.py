@@ -36,12 +36,13 @@ from .cases_base import TOL_ARITH, TOL_EXACT, TOL_TRACE, TOL_WEIGHTS, _Cases
 BREAKPOINT_DELTA = 2e-6
 
 # Delay tables of [D-1], [D-2] whose draws are sampled between the breakpoints. Those with d_min > 1 tell
-# (d - d_min) from d or (d - 1) in the exponent; at 12 * 64 and 20 * 40 the unshifted exp(-decay d)
-# underflows to 0 for every delay, so only logits shifted to start at 0 give a table ([D-2]).
+# (d - d_min) from d or (d - 1) in the exponent; at 12 * 64, 20 * 40 and 100 * 8 the unshifted
+# exp(-decay d) underflows to 0 for every delay, so only logits shifted to start at 0 give a table ([D-2]).
 # decay = ln 2 halves each probability: 4/7, 2/7, 1/7.
 MARGIN_TABLES = (("uniform", 0, 4, 1.0), ("uniform", 2, 11, 1.0), ("exponential", 0, 4, 0.5),
                  ("exponential", 1, 6, 0.75), ("exponential", 2, 6, 0.5), ("exponential", 3, 5, math.log(2.0)),
-                 ("exponential", 3, 9, 0.3), ("exponential", 12, 14, 64.0), ("exponential", 20, 27, 40.0))
+                 ("exponential", 3, 9, 0.3), ("exponential", 12, 14, 64.0), ("exponential", 20, 27, 40.0),
+                 ("exponential", 100, 102, 8.0))
 
 # Geometries with H - s != s ([S-6], [G-1], [W-6], [X-1]).
 UNEVEN = ((8, 3), (10, 4), (6, 5), (8, 2))

@@ -163,11 +163,12 @@ def test_margin_cases_are_what_the_hooks_add(vector_files, vectors_without_margi
 @pytest.mark.parametrize("label", sorted(MARGIN_MUTANTS))
 def test_margin_mutant_killed_only_by_margin_cases(label, vector_files, vectors_without_margins):
     """[CF-20], [CF-4] Each margin mutant (D-2, D-3, N-7, S-6, G-1, W-6, M-3, G-4) passes every case that
-    existed without the margin cases and fails the shipped vectors; the reference passes both."""
+    existed without the margin cases and fails at least three cases of the shipped vectors; the reference
+    passes both."""
     adapter, fname = _mutant(label)
     before = runner.run(adapter, files=vectors_without_margins, only={fname})
     assert before.ok and before.counts["pass"] > 0, f"mutant '{label}' was already caught"
     now = runner.run(adapter, files=vector_files, only={fname})
-    assert not now.ok and now.counts["fail"] > 0, f"mutant '{label}' passed the conformance suite"
+    assert not now.ok and now.counts["fail"] >= 3, f"mutant '{label}' failed {now.counts['fail']} cases, not 3"
     base = runner.run(ReferenceAdapter(), files=vector_files, only={fname})
     assert base.ok and base.counts["pass"] == now.counts["pass"] + now.counts["fail"]
