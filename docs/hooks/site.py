@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import ast
 import logging
+import posixpath
+import re
 from pathlib import Path
 
 from mkdocs.structure.files import File
@@ -29,6 +31,10 @@ GUIDE_ORDER = ("validating.md", "porting.md", "commands.md", "jax.md", "torch.md
 # Plots of the arm experiment shown under its report, per task folder that has them.
 # The index of the build in progress (on_files makes it, on_page_markdown uses it).
 _INDEX: list = []
+# Repository path -> site path of every published repository file, and site page -> the repository file it
+# was made from (for the pages whose relative links point into the repository).
+_SITE_OF: dict = {}
+_SOURCE_OF: dict = {}
 ARM_PLOTS = ("success_by_delay.png", "frontier.png", "sweeps.png", "window_weights.png")
 
 
@@ -62,11 +68,56 @@ def on_config(config, **kwargs):
     return config
 
 
-def _add(files, config, uri: str, *, content=None, path: Path | None = None) -> None:
+def _add(files, config, uri: str, *, content=None, path: Path | None = None, source: str | None = None) -> None:
+    """A generated site file at ``uri``: a repository file (``path``) or text made from one (``source``)."""
     if path is not None:
         files.append(File.generated(config, uri, abs_src_path=str(path)))
+        source = Path(path).resolve().relative_to(ROOT).as_posix()
     else:
         files.append(File.generated(config, uri, content=content))
+    if source is not None:
+        _SITE_OF[source] = uri
+        if uri.endswith(".md"):
+            _SOURCE_OF[uri] = source
+
+
+# A relative Markdown link or image target (no scheme, not only a fragment, not absolute).
+_LINK = re.compile(r"(\]\()([^)\s]+)(\))")
+
+
+def _repo_target(source: str, target: str):
+    """(repository path, fragment) a relative link of the repository file ``source`` points to, or None."""
+    if re.match(r"^[a-z][a-z0-9+.-]*:", target) or target.startswith(("#", "/")):
+        return None
+    path, _, frag = target.partition("#")
+    rel = posixpath.normpath(posixpath.join(posixpath.dirname(source), path))
+    return None if rel.startswith("..") else (rel, frag)
+
+
+def _publish_link_targets(files, config) -> None:
+    """Files the published repository pages link to, and that the site has no page for, are published under
+    ``repo/`` so the links work on the site; a link to a file that does not exist stays broken (and fails
+    the strict build)."""
+    for uri, source in list(_SOURCE_OF.items()):
+        text = (ROOT / source).read_text(encoding="utf-8")
+        for m in _LINK.finditer(text):
+            hit = _repo_target(source, m.group(2))
+            if hit and hit[0] not in _SITE_OF and (ROOT / hit[0]).is_file():
+                _add(files, config, f"repo/{hit[0]}", path=ROOT / hit[0])
+
+
+def _rewrite_links(markdown: str, uri: str) -> str:
+    """The relative links of a page made from a repository file, pointed at the site's copies of their targets."""
+    source = _SOURCE_OF[uri]
+
+    def repl(m):
+        hit = _repo_target(source, m.group(2))
+        if not hit or hit[0] not in _SITE_OF:
+            return m.group(0)
+        new = posixpath.relpath(_SITE_OF[hit[0]], posixpath.dirname(uri) or ".")
+        return f"{m.group(1)}{new}{'#' + hit[1] if hit[1] else ''}{m.group(3)}"
+
+    return _LINK.sub(repl, markdown)
 
 
 def _arm_report(task_dirs) -> str:
@@ -82,12 +133,16 @@ def _arm_report(task_dirs) -> str:
 def on_files(files, config, **kwargs):
     index = si.build_index(ROOT)
     _INDEX[:] = [index]
+    _SITE_OF.clear()
+    _SOURCE_OF.clear()
     header = version_line()
     _add(files, config, "spec/index.md", content=si.render_spec_index(index, header))
     for ch in index.chapters:
         _add(files, config, f"spec/{ch.slug}.md", content=si.render_chapter(ch, index, ROOT, header))
+        _SITE_OF[ch.path] = f"spec/{ch.slug}.md"
     for path in index.cited_files:
         _add(files, config, si.code_page_uri(path), content=si.render_code_page(ROOT, path))
+        _SITE_OF[path] = si.code_page_uri(path)
     _add(files, config, "conformance/vectors.md", content=si.render_vectors_page(index, header))
     for name in index.vector_totals:
         _add(files, config, f"conformance/vectors/{name}", path=ROOT / "conformance" / "vectors" / name)
@@ -104,7 +159,7 @@ def on_files(files, config, **kwargs):
             _add(files, config, f"reports/thirdparty/{rel}", path=p)
     _add(files, config, "reports/thirdparty.md", content=_third_party_page(reports))
     tasks = sorted(p.name for p in (ROOT / "results" / "arm").iterdir() if p.is_dir())
-    _add(files, config, "reports/arm-report.md", content=_arm_report(tasks))
+    _add(files, config, "reports/arm-report.md", content=_arm_report(tasks), source="results/arm/REPORT.md")
     for task in tasks:
         for name in ARM_PLOTS:
             p = ROOT / "results" / "arm" / task / name
@@ -114,6 +169,7 @@ def on_files(files, config, **kwargs):
         _add(files, config, f"reports/arm/realtime/{p.name}", path=p)
     for p in sorted((ROOT / "results" / "kinetix" / "study").glob("*.png")):
         _add(files, config, f"reports/kinetix/{p.name}", path=p)
+    _publish_link_targets(files, config)
     config.nav = _nav(files, index)
     return files
 
@@ -123,6 +179,8 @@ def on_page_markdown(markdown, page, config, files, **kwargs):
     uri = page.file.src_uri
     if uri.startswith(("spec/", "code/")):
         return markdown
+    if uri in _SOURCE_OF:
+        markdown = _rewrite_links(markdown, uri)
     depth = uri.count("/")
     return si.link_ids(markdown, _INDEX[0], "../" * depth + "spec/")
 
