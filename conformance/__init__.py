@@ -5,7 +5,8 @@
   adapter         the adapter interface and loader for implementations under test ([CF-7]..[CF-12], [CF-27])
   vectors_io      reading vector files, the number convention and integrity ([CF-23], [CF-25]);
   vector_checks   the checks of each case before any implementation runs ([CF-24], [CF-28])
-  runner          runs every case and compares ([CF-13]..[CF-18]); results: summary, JSON report, JUnit
+  runner          runs every case ([CF-13]..[CF-18]); compare: the comparison and the time conventions
+                  ([CF-5], [CF-10]); results: summary, JSON report, JUnit, output paths ([CF-15], [CF-39])
   protocol        the runner's end of the child-process protocol ([CF-29]..[CF-31]); host: the Python end;
   invoke          one call of a Python adapter, shared by the host and --in-process
   cli             `softrtc conformance run|generate` ([CF-19])
