@@ -212,7 +212,11 @@ def check_output_paths(paths: dict) -> None:
         why = output_problem(path)
         if why:
             raise ValueError(f"{option} {os.fspath(path)} {why}")
-        key = os.path.realpath(path)
+        try:  # an existing file by its inode, so a hard link to it is the same file too
+            st = os.stat(path)
+            key = f"inode {st.st_dev}:{st.st_ino}"
+        except OSError:
+            key = os.path.realpath(path)
         if key in seen:
             raise ValueError(f"{seen[key]} and {option} name the same file {os.fspath(path)}; each output needs a "
                              "file of its own")

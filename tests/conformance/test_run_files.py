@@ -139,8 +139,8 @@ def test_a_vector_file_that_is_no_regular_file_is_refused_without_hanging(tmp_pa
 # ---------------------------------------------------------------- output paths ([CF-15], [CF-40])
 
 def test_report_and_junit_on_the_same_path_are_refused(tmp_path):
-    """[CF-15], [N-11] --report and --junit naming one file (also spelt differently) is a usage error before any
-    case runs: exit 2, one line naming both options, nothing written."""
+    """[CF-15], [N-11] --report and --junit naming one file (also spelt differently, or a hard link to it) is a
+    usage error before any case runs: exit 2, one line naming both options, nothing written."""
     out = tmp_path / "out.xml"
     for other in (str(out), str(tmp_path / "." / "out.xml")):
         r = _cli("--impl", "reference", "--only", "endpoint", "--report", str(out), "--junit", other)
@@ -148,6 +148,10 @@ def test_report_and_junit_on_the_same_path_are_refused(tmp_path):
         assert r.returncode == 2 and r.stdout == "" and len(lines) == 1, r.stdout + r.stderr
         assert "--report" in lines[0] and "--junit" in lines[0] and "same file" in lines[0]
         assert not out.exists() and list(tmp_path.iterdir()) == []
+    out.write_text("old")
+    os.link(out, tmp_path / "hard.xml")
+    r = _cli("--impl", "reference", "--only", "endpoint", "--report", str(out), "--junit", str(tmp_path / "hard.xml"))
+    assert r.returncode == 2 and "same file" in r.stderr and out.read_text() == "old", r.stderr
 
 
 @pytest.mark.parametrize("kind", ["symlink", "dangling", "fifo", "device"])
