@@ -37,7 +37,9 @@ from softrtc.reference import weights as rw
 from softrtc.reference._validate import check_int
 from softrtc.reference.methods import check_method_step
 
+from . import result_files as rf
 from .tasks import ArmTask, get_task
+from .workers import job_runner
 
 __all__ = ["Row", "PAPER_WINDOW", "DEFAULT_WINDOW", "rows_for", "Budget", "BUDGETS", "run_experiment",
            "EPISODE_FIELDS", "read_episodes", "measure_prior_error", "train_key", "eval_key"]
@@ -467,7 +469,7 @@ def _check_recorded(out_dir: Path, task: ArmTask, budget: Budget, key: str, sd: 
     if not rec_path.is_file() or not ckpt.is_file():
         return
     digest = hashlib.sha256(ckpt.read_bytes()).hexdigest()[:16]
-    recorded = json.loads(rec_path.read_text())["sha256_16"]
+    recorded = rf.check_finetune(rf.read_json(rec_path, "fine-tune record"), rec_path)["sha256_16"]  # [AX-12]
     if digest == recorded:
         return
     partial = [Path(c[-1]).name for c in cells if Path(c[-1]).is_file()]
@@ -528,9 +530,6 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
     ``sweep``; ``episodes`` caps the episodes per cell below the budget's (a
     later run with more extends the cells). Complete cells are never recomputed.
     """
-    from concurrent.futures import ProcessPoolExecutor
-    import multiprocessing as mp
-
     task = get_task(task_name)
     if budget_name not in BUDGETS:
         raise ValueError(f"budget must be one of {tuple(BUDGETS)}, got {budget_name!r}")
@@ -585,7 +584,9 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
                 "order": [r.name for r in all_rows]}
     # Compared as JSON: tuples come back from the file as lists.
     manifest = json.loads(json.dumps(manifest))
-    old = json.loads(manifest_path.read_text()) if manifest_path.is_file() else None
+    # [AX-12] A half-written manifest names itself, not only a JSON position.
+    old = rf.check_manifest(rf.read_json(manifest_path, "manifest"), manifest_path) if manifest_path.is_file() \
+        else None
     manifest["cpu_models"] = cpu_models(old)
     if old is not None:
         if old.get("budget_values") != manifest["budget_values"] or old.get("base_sha256_16") != \
@@ -599,7 +600,7 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
         log(f"[{task.name}] measuring the prior error on {budget.prior_episodes} episodes per delay")
         pe = measure_prior_error(base_path, task, budget.prior_episodes, budget.max_steps)
         prior_path.write_text(json.dumps(pe, indent=1) + "\n")
-    sigma = json.loads(prior_path.read_text())["sigma"]
+    sigma = rf.check_prior(rf.read_json(prior_path, "prior error"), prior_path)["sigma"]
 
     # Cells first: a fine-tune runs only when a cell that needs its checkpoint is incomplete, so a
     # complete results folder (e.g. a fresh clone's committed one) costs no fine-tuning.
@@ -632,23 +633,29 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
     data = None
     for (r, sd, key, args) in todo:
         ckpt = Path(args[0])
-        if key is None or ckpt.is_file():
+        tag = f"{key}_seed{sd}"
+        rec_path = out_dir / "finetunes" / f"{tag}.json"
+        # [AX-13] A checkpoint is reused only with its record; without one it is fine-tuned again (the same
+        # checkpoint on the same CPU model, [AX-9]) and its record rewritten, its digest checked against the
+        # checkpoint it replaces.
+        if key is None or (ckpt.is_file() and rec_path.is_file()):
             continue
+        recorded = rf.check_finetune(rf.read_json(rec_path, "fine-tune record"), rec_path)["sha256_16"] \
+            if rec_path.is_file() else hashlib.sha256(ckpt.read_bytes()).hexdigest()[:16] if ckpt.is_file() \
+            else None
+        source = str(rec_path) if rec_path.is_file() else f"the checkpoint {ckpt} it replaces"
         if base is None:
             base = load_arm_checkpoint(base_path)
             data = _demos(Path(work), budget, task)
-        tag = f"{key}_seed{sd}"
         log(f"[{task.name}] fine-tune {tag} ({r.name}, {budget.finetune_steps} steps)")
         # One file per fine-tune: runs in parts may fine-tune in parallel processes.
         rec = _finetune(key, r, task, sd, budget, data, base, sigma, ckpt)
-        rec_path = out_dir / "finetunes" / f"{tag}.json"
-        if rec_path.is_file() and json.loads(rec_path.read_text())["sha256_16"] != rec["sha256_16"]:
+        if recorded is not None and recorded != rec["sha256_16"]:
             # The folder's episodes of this fine-tune came from another checkpoint (another machine's
             # floating point, or changed code): extending them would mix two policies in one cell.
             ckpt.unlink()
-            raise ValueError(f"fine-tune {tag} gave checkpoint {rec['sha256_16']}, but {rec_path} records "
-                             f"{json.loads(rec_path.read_text())['sha256_16']}: its episodes in {out_dir} came from "
-                             "another checkpoint; use another --out")
+            raise ValueError(f"fine-tune {tag} gave checkpoint {rec['sha256_16']}, but {source} records "
+                             f"{recorded}: its episodes in {out_dir} came from another checkpoint; use another --out")
         rec_path.parent.mkdir(exist_ok=True)
         rec_path.write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
     for (key, sd), cells in sorted(_by_finetune(todo).items()):
@@ -658,15 +665,10 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
     t0 = time.perf_counter()
     done = 0
     if todo:
-        if workers == 1:
-            results = map(_run_cell, todo)
-        else:
-            pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
-            results = pool.map(_run_cell, todo)
-        for p, secs in results:
-            done += 1
-            log(f"[{task.name}] {done}/{len(todo)} {Path(p).name} ({secs:.0f} s, {time.perf_counter() - t0:.0f} s "
-                "elapsed)")
-        if workers != 1:
-            pool.shutdown()
+        # [AX-13] SIGTERM, SIGINT or an error ends every worker before the run exits.
+        with job_runner(workers) as run:
+            for p, secs in run(_run_cell, todo):
+                done += 1
+                log(f"[{task.name}] {done}/{len(todo)} {Path(p).name} ({secs:.0f} s, "
+                    f"{time.perf_counter() - t0:.0f} s elapsed)")
     return {"cells": len(jobs), "ran": len(todo), "seconds": time.perf_counter() - t0}

@@ -9,12 +9,12 @@ Deterministic: every bootstrap uses seed 0.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from .experiment import H, read_episodes
+from . import result_files as rf
+from .experiment import H
 from .paired_stats import cluster_bootstrap, paired_difference, sign_flip_test
 
 __all__ = ["load_results", "summarize", "METRICS", "RESAMPLES"]
@@ -30,35 +30,43 @@ _SPLIT = {"D2_success": ("D2", 1.0), "D2_failure": ("D2", 0.0)}
 
 
 def load_results(folder) -> dict:
-    """``{"manifest", "cells": {(row, seed, delay): [episode dicts]}, "prior", "finetunes"}`` of a task folder."""
+    """``{"manifest", "cells": {(row, seed, delay): [episode dicts]}, "prior", "finetunes"}`` of a task folder.
+
+    Every file is checked as it is read ([AX-12], :mod:`softrtc.arm.result_files`): a damaged one is a
+    ValueError naming it, never a changed report.
+    """
     folder = Path(folder)
     if not (folder / "manifest.json").is_file():
         raise ValueError(f"folder must hold an arm experiment's results (manifest.json), got {str(folder)!r}")
-    manifest = json.loads((folder / "manifest.json").read_text())
+    manifest = rf.check_manifest(rf.read_json(folder / "manifest.json", "manifest"), folder / "manifest.json")
     # Cells from the episode files themselves (``<eval key>_s<seed>_d<delay>.csv``): every row whose eval key
     # names a file has that cell, so rows that share episodes ([AX-3]) share them here too.
     by_key = {}
     for f in sorted((folder / "episodes").glob("*.csv")):
+        episodes = rf.check_episode_file(f, rf.read_episode_rows(f), manifest)
         key, seed, delay = f.stem.rsplit("_", 2)
-        by_key.setdefault(key, []).append((int(seed[1:]), int(delay[1:]), f))
-    cells, cache = {}, {}
+        by_key.setdefault(key, []).append((int(seed[1:]), int(delay[1:]), episodes))
+    cells = {}
     for row, info in manifest["rows"].items():
-        for seed, delay, f in by_key.get(info["eval_key"], []):
-            if f not in cache:
-                cache[f] = read_episodes(f)
-            cells[(row, seed, delay)] = cache[f]
-    prior = json.loads((folder / "prior_error.json").read_text()) if (folder / "prior_error.json").is_file() else None
-    ft = json.loads((folder / "finetunes.json").read_text()) if (folder / "finetunes.json").is_file() else {}
+        for seed, delay, episodes in by_key.get(info["eval_key"], []):
+            cells[(row, seed, delay)] = episodes
+    prior_path = folder / "prior_error.json"
+    prior = rf.check_prior(rf.read_json(prior_path, "prior error"), prior_path) if prior_path.is_file() else None
+    ft = rf.read_json(folder / "finetunes.json", "fine-tune records") if (folder / "finetunes.json").is_file() else {}
+    if not isinstance(ft, dict):
+        raise ValueError(f"fine-tune records {str(folder / 'finetunes.json')!r} must hold a JSON object")
+    for tag, rec in ft.items():
+        rf.check_finetune(rec, f"{folder / 'finetunes.json'}: {tag}")
     recomputed = {}
     for f in sorted((folder / "finetunes").glob("*.json")):
         # ``<tag>.recomputed.json``: a checkpoint recomputed on another CPU model and its replay check ([AX-11]).
         if f.name.endswith(".recomputed.json"):
-            recomputed[f.name[:-len(".recomputed.json")]] = json.loads(f.read_text())
+            recomputed[f.name[:-len(".recomputed.json")]] = rf.read_json(f, "recomputed fine-tune record")
         else:
-            ft[f.stem] = json.loads(f.read_text())
+            ft[f.stem] = rf.check_finetune(rf.read_json(f, "fine-tune record"), f)
     mech = folder / "mechanism.json"
     return {"manifest": manifest, "cells": cells, "prior": prior, "finetunes": ft, "folder": str(folder),
-            "recomputed": recomputed, "mechanism": json.loads(mech.read_text()) if mech.is_file() else None}
+            "recomputed": recomputed, "mechanism": rf.read_json(mech, "mechanism record") if mech.is_file() else None}
 
 
 def _seeds(res, row):
