@@ -460,8 +460,9 @@ def _check_recorded(out_dir: Path, task: ArmTask, budget: Budget, key: str, sd: 
     checkpoint replays the first ``REPLAY_EPISODES`` episodes of a committed cell of the same fine-tune
     (a row with Algorithm 1's sampler, highest delay): all but ``REPLAY_MAY_DIFFER`` of them must end with
     the same success and the same number of steps, else the run stops. The replay is recorded in
-    ``finetunes/<tag>.recomputed.json``. A partly written cell of such a checkpoint is refused, since
-    extending it would mix two policies in one cell.
+    ``finetunes/<tag>.recomputed.json`` with the cells the checkpoint started (``cells``); a partly
+    written cell not among them came from the recorded checkpoint and is refused, since extending it
+    would mix two policies in one cell.
     """
     tag = f"{key}_seed{sd}"
     rec_path = out_dir / "finetunes" / f"{tag}.json"
@@ -472,13 +473,21 @@ def _check_recorded(out_dir: Path, task: ArmTask, budget: Budget, key: str, sd: 
     recorded = rf.check_finetune(rf.read_json(rec_path, "fine-tune record"), rec_path)["sha256_16"]  # [AX-12]
     if digest == recorded:
         return
-    partial = [Path(c[-1]).name for c in cells if Path(c[-1]).is_file()]
+    names = [Path(c[-1]).name for c in cells]
+    done_path = out_dir / "finetunes" / f"{tag}.recomputed.json"
+    prev = rf.read_json(done_path, "recomputed fine-tune record") if done_path.is_file() else None
+    prev = prev if isinstance(prev, dict) and prev.get("sha256_16") == digest else None
+    # Cells this checkpoint started may be extended; any other partly written cell came from the recorded one.
+    mine = set(prev.get("cells", [])) if prev is not None else set()
+    partial = [n for n, c in zip(names, cells) if Path(c[-1]).is_file() and n not in mine]
     if partial:
         raise ValueError(f"fine-tune {tag} is checkpoint {digest}, but {rec_path} records {recorded}: its cells "
                          f"{partial} came from the recorded one; extending them would mix two policies; use "
                          "another --out")
-    done_path = out_dir / "finetunes" / f"{tag}.recomputed.json"
-    if done_path.is_file() and json.loads(done_path.read_text()).get("sha256_16") == digest:
+    from softrtc._files import write_json
+    if prev is not None:
+        if not set(names) <= mine:
+            write_json(done_path, dict(prev, cells=sorted(mine | set(names))))
         return
     import jax
 
@@ -508,12 +517,12 @@ def _check_recorded(out_dir: Path, task: ArmTask, budget: Budget, key: str, sd: 
     out = {"key": key, "seed": sd, "sha256_16": digest, "recorded_sha256_16": recorded, "cpu_model": cpu_model(),
            "replayed_row": ref.name, "delay": d, "episodes": len(replay), "same_success_and_steps": same,
            "max_abs_D2_difference": max((abs(r["D2"][0] - r["D2"][1]) for r in replay
-                                         if None not in r["D2"]), default=None), "replay": replay}
+                                         if None not in r["D2"]), default=None), "replay": replay,
+           "cells": sorted(names)}
     if same < len(replay) - REPLAY_MAY_DIFFER:
         raise ValueError(f"fine-tune {tag}: checkpoint {digest} replays {same} of {len(replay)} committed episodes "
                          f"of `{ref.name}` with the same success and steps; its cells would not be comparable with "
                          "the folder's; use another --out")
-    from softrtc._files import write_json
     write_json(done_path, out)
 
 
@@ -530,6 +539,7 @@ def run_experiment(task_name: str = "drift", budget_name: str = "full", out="res
     ``sweep``; ``episodes`` caps the episodes per cell below the budget's (a
     later run with more extends the cells). Complete cells are never recomputed.
     """
+
     task = get_task(task_name)
     if budget_name not in BUDGETS:
         raise ValueError(f"budget must be one of {tuple(BUDGETS)}, got {budget_name!r}")

@@ -184,10 +184,10 @@ def _prior_section(res, summary, manifest) -> list:
              "| d | " + " | ".join(f"j = {j}" for j in range(o)) + " |", "|---|" + "---|" * o]
     for d, v in sorted(pe["rms"].items(), key=lambda kv: int(kv[0])):
         lines.append(f"| {d} | " + " | ".join(_f(x, 2) for x in v) + " |")
-    lines += ["", "Executed window tokens of Soft lam 2 (clip) and their pull toward the prior "
+    lines += ["", "Executed window tokens of Soft lam 2 (clip) and their weighted prior error "
               "(sum over executed window tokens `d <= j < s` of `w_j * rms_j`) against the success "
               "difference to Train Hard at that delay:", "",
-              "| d | executed window tokens (w) | pull | success soft - hard |", "|---|---|---|---|"]
+              "| d | executed window tokens (w) | weighted prior error | success soft - hard |", "|---|---|---|---|"]
     win = rw.SoftWindow()
     for d in range(1, min(s, o) + 1):
         w = rw.soft_weights(H, d, win, s)
