@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[2]
 log = logging.getLogger("mkdocs.hooks.softrtc")
 
 # Guides shown first, in this order; any other docs/guides/*.md follows in file-name order.
-GUIDE_ORDER = ("validating.md", "porting.md", "commands.md", "jax.md", "torch.md", "arm.md", "kinetix.md")
+GUIDE_ORDER = ("validating.md", "rollouts.md", "porting.md", "commands.md", "jax.md", "torch.md", "arm.md", "kinetix.md")
 # Plots of the arm experiment shown under its report, per task folder that has them.
 # The index of the build in progress (on_files makes it, on_page_markdown uses it).
 _INDEX: list = []
