@@ -97,6 +97,7 @@ ENUMS = {
     ("method_weights", ("method",)): {"naive", "inference_hard", "inference_soft", "train_hard", "train_soft"},
     ("guidance_weights", ("variant",)): {"hard", "soft"},
     ("delay_probs", ("dist",)): {"uniform", "exponential"},
+    ("rtc_sample_step", ("step",)): {"algorithm1", "consistent"},
 }
 
 
