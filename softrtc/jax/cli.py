@@ -88,6 +88,31 @@ def add_subparsers(subparsers) -> None:
     tb.set_defaults(func=run_table)
 
 
+def _check_memory(config) -> None:
+    """[B-16] The largest chunk batch and the training batch fit in the memory JAX computes in (the host's,
+    or an accelerator's own), estimated from the sizes before anything is compiled."""
+    import jax
+
+    from softrtc._memory import available_bytes, check_fits, step_bytes
+
+    from .bench_config import ARCHS
+
+    available = available_bytes()
+    if jax.default_backend() != "cpu":
+        stats = jax.devices()[0].memory_stats() or {}
+        if "bytes_limit" in stats:
+            available = stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+    pc = ARCHS[config.arch]["config"]
+
+    def need(batch):
+        return step_bytes(batch, pc.action_chunk_size, pc.num_layers, pc.channel_dim, pc.channel_hidden_dim)
+
+    largest = max(config.batch_sizes)
+    check_fits("--batch-sizes entry", largest, need(largest), available)
+    if config.train_calls:
+        check_fits("--train-batch", config.train_batch, need(config.train_batch), available)
+
+
 def _run(args, run, fmt, **extra):
     """Build the BenchConfig from ``args``, run, print the table and write the JSON.
 
@@ -107,6 +132,10 @@ def _run(args, run, fmt, **extra):
             seed=args.seed, num_steps=args.steps, execute_horizon=args.execute_horizon, arch=args.arch, **extra)
     except ValueError as exc:
         return command_error(prog, _as_options(str(exc)))
+    try:
+        _check_memory(config)
+    except ValueError as exc:
+        return command_error(prog, exc)
     res = run(config, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
     print(fmt(res))
     try:

@@ -96,6 +96,23 @@ def _as_option(message: str) -> str:
     return _OPTIONS.get(field, "--" + field.replace("_", "-")) + message[len(field):]
 
 
+def _check_memory(bench, cfg) -> None:
+    """[B-16] The largest chunk batch and the training batch fit in the host's memory, estimated from the
+    sizes before any tensor is made (the rows run on the CPU)."""
+    from softrtc._memory import available_bytes, check_fits, step_bytes
+
+    pc = bench.ARCHS[cfg.arch]["config"]
+    available = available_bytes()
+
+    def need(batch):
+        return step_bytes(batch, pc.horizon, pc.num_layers, pc.width, pc.channel_hidden)
+
+    largest = max(cfg.batch_sizes)
+    check_fits("--batch-sizes entry", largest, need(largest), available)
+    if cfg.train_calls:
+        check_fits("--train-batch", cfg.train_batch, need(cfg.train_batch), available)
+
+
 def run_bench(args) -> int:
     prog = getattr(args, "_prog", "softrtc bench torch")
     if importlib.util.find_spec("torch") is None:
@@ -116,6 +133,10 @@ def run_bench(args) -> int:
                                 architecture=args.architecture, threads=args.threads, clock=args.clock)
     except ValueError as exc:
         return command_error(prog, _as_option(str(exc)))
+    try:
+        _check_memory(bench, cfg)
+    except ValueError as exc:
+        return command_error(prog, exc)
     res = bench.run_benchmark(cfg, progress=lambda m: print(f"[bench] {m}", file=sys.stderr, flush=True))
     print(bench.format_table(res))
     try:
