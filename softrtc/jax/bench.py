@@ -31,7 +31,7 @@ import numpy as np
 from softrtc.reference._validate import check_choice, check_int
 
 from .bench_config import (ARCHS, ATOL, CHUNK_ROWS, GUIDED_VS_PUBLIC_LIMIT, NAIVE_VS_STRAIGHTFORWARD_LIMIT,
-                           PUBLIC_ROWS, REFERENCE_ROWS, RTOL, SOFT_STEP_LIMIT, TRAIN_METHODS,
+                           PUBLIC_ROWS, REFERENCE_ROWS, ROW_STEPS, RTOL, SOFT_STEP_LIMIT, TRAIN_METHODS, TRAIN_ROWS,
                            TRAIN_SAMPLER_LIMIT, BenchConfig, inputs, make_policy)
 from .bench_report import cpu_model
 from .endpoints import delay_scaled
@@ -101,12 +101,17 @@ def _guided_head(policy: FlowPolicy, config: BenchConfig, batch: int) -> int | N
     return guided_tokens_for("inference_soft", policy.action_chunk_size, config.execute_horizon, batch)
 
 
-def _straightforward_fn(graphdef, treedef, method, window, s, T):
+def _straightforward_fn(graphdef, treedef, method, window, s, T, step="algorithm1"):
     def chunk(leaves, tables, obs, noise, prior, d):
         policy = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
         vel = policy if method.startswith("train_") else _scalar_time(policy)
-        return generate_chunk(method, vel, obs, noise, prior, s, d, T, window)
+        return generate_chunk(method, vel, obs, noise, prior, s, d, T, window, step=step)
     return jax.jit(chunk)
+
+
+def _step(name: str) -> str:
+    """The solver step of row ``name`` ([B-1], [S-10])."""
+    return ROW_STEPS.get(name, "algorithm1")
 
 
 def _public_guided_fn(graphdef, treedef, method, s, T):
@@ -163,10 +168,10 @@ def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row
     (a non-empty sequence without repeats). ``policy`` must have the horizon of
     ``config.arch``.
 
-    With ``path="fast"`` the six method rows use the fast path, and the
+    With ``path="fast"`` the seven method rows use the fast path, and the
     straightforward naive and train-soft (lam=2) samplers and the guided soft
     sampler as the public release runs it ([B-14]) are rows of their own;
-    with ``path="straightforward"`` the six method rows are straightforward.
+    with ``path="straightforward"`` the seven method rows are straightforward.
     Fast-path tables are built here, once per parameter set, and timed apart.
     """
     _check_config_policy(config, policy)
@@ -183,11 +188,11 @@ def build_rows(config: BenchConfig, policy: FlowPolicy, names=None) -> list[_Row
         window = _window(wspec)
         if path == "fast":
             t0 = time.perf_counter()
-            fast = FastChunks(policy, method, s, T, window).block_until_ready()
+            fast = FastChunks(policy, method, s, T, window, step=_step(name)).block_until_ready()
             rows.append(_Row(name, method, path, label, fast.chunk, fast.compilations, time.perf_counter() - t0))
         else:
             fn = (_public_guided_fn(graphdef, treedef, method, s, T) if path == "public"
-                  else _straightforward_fn(graphdef, treedef, method, window, s, T))
+                  else _straightforward_fn(graphdef, treedef, method, window, s, T, _step(name)))
             rows.append(_Row(name, method, path, label, partial(fn, leaves, None), lambda fn=fn: fn._cache_size(),
                              0.0, fn if path == "straightforward" else None))
     return rows
@@ -230,7 +235,7 @@ def check_agreement(config: BenchConfig, policy: FlowPolicy, batch: int, names=N
     rows = [r for r in build_rows(fast, policy, names) if r.path == "fast"]
     graphdef, treedef, state = _params(policy)
     reference = {n: _straightforward_fn(graphdef, treedef, CHUNK_ROWS[n][0], _window(CHUNK_ROWS[n][1]),
-                                        config.execute_horizon, config.num_steps) for n in names}
+                                        config.execute_horizon, config.num_steps, _step(n)) for n in names}
     delays = [jnp.asarray(d, jnp.int32) for d in config.delays]
     return _agreement(rows, reference, state, inputs(config, policy, batch, 1)[0], delays)
 
@@ -291,7 +296,8 @@ def run_benchmark(config: BenchConfig = BenchConfig(), *, progress: Callable[[st
     for name, (method, wspec, _) in CHUNK_ROWS.items():
         own = [r.fn for r in rows if r.name == name and r.path == "straightforward"]
         reference[name] = own[0] if own else _straightforward_fn(graphdef, treedef, method, _window(wspec),
-                                                                 config.execute_horizon, config.num_steps)
+                                                                 config.execute_horizon, config.num_steps,
+                                                                 _step(name))
     delays = [jnp.asarray(d, jnp.int32) for d in config.delays]
     naive_key = "naive"
 
@@ -432,7 +438,7 @@ def _targets(config: BenchConfig, res: dict) -> list[dict]:
         return out
     for B in config.batch_sizes:
         ch = res["chunk"][str(B)]
-        train = max(ch[k]["ratio"] for k in ("train_hard", "train_soft_lam1", "train_soft_lam2"))
+        train = max(ch[k]["ratio"] for k in TRAIN_ROWS if k in ch)
         add("B-9", f"train-time samplers / naive, batch {B}", train, TRAIN_SAMPLER_LIMIT)
         add("B-9", f"naive / straightforward naive, batch {B}",
             ch["naive"]["median_ms"] / ch["naive/straightforward"]["median_ms"], NAIVE_VS_STRAIGHTFORWARD_LIMIT)

@@ -13,7 +13,8 @@ from softrtc.reference._validate import check_choice, check_int
 
 from .policy import FlowPolicy, PolicyConfig
 
-__all__ = ["ARCHS", "CHUNK_ROWS", "REFERENCE_ROWS", "PUBLIC_ROWS", "TRAIN_METHODS", "BenchConfig", "make_policy"]
+__all__ = ["ARCHS", "CHUNK_ROWS", "ROW_STEPS", "TRAIN_ROWS", "REFERENCE_ROWS", "PUBLIC_ROWS", "TRAIN_METHODS",
+           "BenchConfig", "make_policy"]
 
 # [B-2] Benchmark architecture (spec chapter P defaults) and a tiny one for smoke runs and tests.
 ARCHS = {
@@ -31,7 +32,13 @@ CHUNK_ROWS = {
     "train_hard": ("train_hard", None, "train hard RTC"),
     "train_soft_lam1": ("train_soft", (1.0, 5), "train soft RTC (lam=1)"),
     "train_soft_lam2": ("train_soft", (2.0, 5), "train soft RTC (lam=2)"),
+    "train_soft_lam2_consistent": ("train_soft", (2.0, 5), "train soft RTC (lam=2, consistent step)"),
 }
+# [B-1], [S-10] The solver step of a training-time row; rows not named run Algorithm 1's.
+ROW_STEPS = {"train_soft_lam2_consistent": "consistent"}
+# [B-9] The training-time rows held to TRAIN_SAMPLER_LIMIT (those a result has: older results lack the
+# consistent-step row).
+TRAIN_ROWS = ("train_hard", "train_soft_lam1", "train_soft_lam2", "train_soft_lam2_consistent")
 # [B-4] Straightforward reference rows measured next to the fast path.
 REFERENCE_ROWS = ("naive", "train_soft_lam2")
 # [B-14] Rows also measured as the public release's guided sampler runs them, next to the fast path.

@@ -15,7 +15,7 @@ from softrtc._files import write_atomic
 from softrtc._machine import cpu_model  # one copy for JAX and torch ([B-10])
 
 from .bench_config import (ARCHS, GUIDED_VS_PUBLIC_LIMIT, NAIVE_VS_STRAIGHTFORWARD_LIMIT, SOFT_STEP_LIMIT,
-                           TRAIN_METHODS, TRAIN_SAMPLER_LIMIT)
+                           TRAIN_METHODS, TRAIN_ROWS, TRAIN_SAMPLER_LIMIT)
 
 __all__ = ["cpu_model", "format_table", "format_ranges", "format_vjp_table", "read_result", "write_json"]
 
@@ -163,8 +163,7 @@ def _ratio_rows() -> list:
     def largest(ch, keys, over):
         return max(ch[k]["median_ms"] for k in keys) / ch[over]["median_ms"]
     return [
-        ("training-time samplers / naive", lambda ch: largest(ch, ("train_hard", "train_soft_lam1",
-                                                                    "train_soft_lam2"), "naive"),
+        ("training-time samplers / naive", lambda ch: largest(ch, tuple(k for k in TRAIN_ROWS if k in ch), "naive"),
          f"{TRAIN_SAMPLER_LIMIT:.2f}"),
         ("naive / straightforward naive", lambda ch: largest(ch, ("naive",), "naive/straightforward"),
          f"{NAIVE_VS_STRAIGHTFORWARD_LIMIT:.2f}"),

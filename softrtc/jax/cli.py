@@ -69,7 +69,7 @@ def add_subparsers(subparsers) -> None:
     rt.add_argument("--path", choices=("fast", "straightforward"), default="fast",
                     help="implementation of the method rows (default fast, which also measures the straightforward "
                          "naive and train-soft samplers and the public-style guided soft sampler as rows of their "
-                         "own; straightforward measures the six method rows on that path only)")
+                         "own; straightforward measures the seven method rows on that path only)")
     rt.add_argument("--train-batch", type=int_in("value", 1, 1 << 16), default=32, help="batch size of the training steps, 1 .. 65536 (default 32)")
     rt.add_argument("--train-calls", type=int_in("value", 0, 10**7), default=50,
                     help="timed training steps per method (default 50; 0 skips them)")

@@ -296,8 +296,8 @@ def test_agreement_check_reports_a_disagreement(monkeypatch):
     policy = bench.make_policy(config)
     honest = bench._straightforward_fn
 
-    def off_by(graphdef, treedef, method, window, s, T):
-        fn = honest(graphdef, treedef, method, window, s, T)
+    def off_by(graphdef, treedef, method, window, s, T, *step):
+        fn = honest(graphdef, treedef, method, window, s, T, *step)
         return lambda *args: fn(*args) + 1e-3
 
     names = ("naive", "train_soft_lam2")

@@ -159,3 +159,25 @@ def test_bad_step_rejected(bad):
         JM.generate_chunk("train_soft", JFIELD, obs, noise, prior, 4, 2, T, step=bad)
     with pytest.raises(ValueError, match=msg):
         JM.generate_chunk_conditioned("train_soft", JFIELD, obs, noise, prior, 4, 2, T, step=bad)
+
+
+def test_bench_row_runs_the_consistent_step():
+    """B-1, B-5, S-10: the benchmark's consistent-step row agrees with the straightforward consistent sampler,
+    differs from the lam = 2 row of Algorithm 1 where window tokens exist, and is held to the training-time
+    target of [B-9]."""
+    from softrtc.jax import bench
+
+    cfg = bench.BenchConfig(arch="tiny", calls=2, warmup=1, batch_sizes=(2,), train_calls=0, num_steps=3)
+    policy = bench.make_policy(cfg)
+    agree = bench.check_agreement(cfg, policy, 2, ("train_soft_lam2_consistent",))
+    assert agree["train_soft_lam2_consistent"]["ok"]
+    rows = {r.name: r for r in bench.build_rows(cfg, policy, ("train_soft_lam2", "train_soft_lam2_consistent"))
+            if r.path == "fast"}
+    obs, noise, prior = bench.inputs(cfg, policy, 2, 1)[0]
+    d = jnp.asarray(2, jnp.int32)
+    a, c = (np.asarray(rows[n].call(obs, noise, prior, d)) for n in ("train_soft_lam2", "train_soft_lam2_consistent"))
+    assert np.abs(a - c).max() > 1e-4
+    want = JM.generate_chunk("train_soft", policy, obs, noise, prior, cfg.execute_horizon, 2, cfg.num_steps,
+                             bench._window((2.0, 5)), step="consistent")
+    np.testing.assert_allclose(c, want, rtol=1e-4, atol=1e-4)
+    assert "train_soft_lam2_consistent" in bench.TRAIN_ROWS
