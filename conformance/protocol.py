@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import resource
 import signal
 import subprocess
@@ -64,6 +65,9 @@ class ChildLost(Exception):
 
 
 _EOF = object()
+# How programs say they ran out of memory on their last stderr line: Python's MemoryError, C++'s
+# std::bad_alloc, glibc's and Node's messages ([CF-37]).
+_OUT_OF_MEMORY = re.compile(r"MemoryError|bad_alloc|out of memory|cannot allocate memory", re.I)
 
 
 def parse_line(line: bytes):
@@ -281,7 +285,11 @@ class Child:
                 how = f"was killed by signal {-rc} ({signal.Signals(-rc).name})"
             except ValueError:
                 how = f"was killed by signal {-rc}"
-        return how + (f" (last stderr line: {tail[-1].strip()[:200]})" if tail else "")
+        last = tail[-1].strip()[:200] if tail else ""
+        # A child that died of its memory limit says so in its own words; the message names the limit ([CF-37]).
+        limit = f" under the memory limit of {self.memory_mb} MB (--case-memory-mb)" \
+            if self.memory_mb is not None and _OUT_OF_MEMORY.search(last) else ""
+        return how + (f" (last stderr line: {last})" if last else "") + limit
 
     @staticmethod
     def _drain(stream, tail: Tail) -> None:

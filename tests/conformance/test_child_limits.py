@@ -60,6 +60,8 @@ for line in sys.stdin:
             os.write(2, block)
         os.write(2, b"last words before exiting\n")
         os._exit(3)
+    if first and mode == "allocate-and-die":
+        hog = bytearray(int(sys.argv[3]) * 1024 * 1024)  # no except: the MemoryError ends the process
     if first and mode == "allocate":
         first = False
         try:
@@ -187,6 +189,17 @@ def test_a_case_over_the_memory_limit_fails_with_one_line(tmp_path):
     assert r.returncode == 1 and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
     fails = [ln for ln in r.stdout.splitlines() if ln.startswith("  FAIL M.")]
     assert len(fails) == 1 and "memory limit of 512 MB (--case-memory-mb)" in fails[0], r.stdout
+
+
+def test_a_child_that_dies_of_the_memory_limit_is_named_so(tmp_path):
+    """[CF-37], [CF-30] A child that dies of the limit (an uncaught MemoryError; Python exits with status 1)
+    fails its case as a lost child whose message names the memory limit; the run goes on in a fresh child."""
+    res = runner.run(impl_cmd=_fake(tmp_path, "allocate-and-die", 2048), only={"standard_error"},
+                     case_memory_mb=512, case_timeout=60)
+    failed = [c for c in res.cases if c.status == "fail"]
+    assert len(failed) == 1 and "exited with status 1" in failed[0].message, [c.message for c in failed]
+    assert "MemoryError" in failed[0].message and "memory limit of 512 MB (--case-memory-mb)" in failed[0].message
+    assert res.counts["pass"] == len(res.cases) - 1
 
 
 def test_the_memory_limit_is_checked_at_the_door(tmp_path):
