@@ -70,3 +70,42 @@ def test_tsweep_and_mechanism_sections_from_files(tmp_path):
         "closer_share": 0.75, "unrelated_median": 0.01, "moved_median": 0.2, "success": 1 / 3}}}}
     assert "| 2 | 2, 3 | 0.50 | consistent | 0.40 [0.10, 0.60] | 0.75 | 0.010 | 0.200 | 0.33 |" in \
         _mechanism_section({"mechanism": mech})
+
+
+def test_recomputed_finetune_may_start_new_cells_only(tmp_path):
+    """AX-11: a checkpoint whose digest differs from its folder's record may not extend a cell the recorded
+    checkpoint wrote; cells it started itself (listed in its .recomputed.json) may be extended."""
+    import hashlib
+    import json
+
+    task = get_task("drift")
+    out = tmp_path / "drift"
+    (out / "finetunes").mkdir(parents=True)
+    (out / "episodes").mkdir()
+    ckpt = tmp_path / "hard_seed1.npz"
+    ckpt.write_bytes(b"a recomputed checkpoint")
+    digest = hashlib.sha256(ckpt.read_bytes()).hexdigest()[:16]
+    rec = {"key": "hard", "seed": 1, "steps": 800, "final_loss": 0.3, "seconds": 1.0, "sha256_16": "0" * 16,
+           "window": None}
+    (out / "finetunes" / "hard_seed1.json").write_text(json.dumps(rec))
+    cell = out / "episodes" / "k_s1_d0.csv"
+    cell.write_text("row\n")
+    args = (str(ckpt), "drift", None, 1, 0, 10, 10_000, 0, 60, str(cell))
+    budget = ex.BUDGETS["quick"]
+    with pytest.raises(ValueError, match="came from the recorded one"):
+        ex._check_recorded(out, task, budget, "hard", 1, [args], 10_000, 0, print)
+    # The same cell listed as started by this checkpoint: accepted without a replay, and a new cell is added.
+    (out / "finetunes" / "hard_seed1.recomputed.json").write_text(json.dumps(
+        {"sha256_16": digest, "recorded_sha256_16": "0" * 16, "cells": ["k_s1_d0.csv"]}))
+    new = (str(ckpt), "drift", None, 1, 1, 10, 10_000, 0, 60, str(out / "episodes" / "k_s1_d1.csv"))
+    ex._check_recorded(out, task, budget, "hard", 1, [args, new], 10_000, 0, print)
+    got = json.loads((out / "finetunes" / "hard_seed1.recomputed.json").read_text())
+    assert got["cells"] == ["k_s1_d0.csv", "k_s1_d1.csv"]
+    # A record of another digest does not vouch for this checkpoint: no committed cell to replay -> refused.
+    (out / "finetunes" / "hard_seed1.recomputed.json").write_text(json.dumps(
+        {"sha256_16": "f" * 16, "recorded_sha256_16": "0" * 16, "cells": ["k_s1_d0.csv"]}))
+    with pytest.raises(ValueError, match="came from the recorded one"):
+        ex._check_recorded(out, task, budget, "hard", 1, [args], 10_000, 0, print)
+    cell.unlink()
+    with pytest.raises(ValueError, match="no committed cell"):
+        ex._check_recorded(out, task, budget, "hard", 1, [args], 10_000, 0, print)
