@@ -145,6 +145,7 @@ def serve(impl: str, stdin, out) -> int:
         return 2
     hello = protocol.hello(impl_obj.name, getattr(impl_obj, "time_convention", "data_at_1"), [FUNCTION])
     send(dict(hello, methods=list(impl_methods(impl_obj))))
+    remote = RemoteField(None, out, stdin)  # one object for every request: an implementation may cache it
     for raw in iter(stdin.readline, b""):
         try:
             msg = json.loads(raw)
@@ -156,7 +157,8 @@ def serve(impl: str, stdin, out) -> int:
             if args.get(k) is not None:
                 args[k] = np.asarray(args[k], np.float64)
         try:
-            res = impl_obj.rollout_chunk(RemoteField(rid, out, stdin), args["obs"], args["prev"], args["noise"],
+            remote.rid = rid
+            res = impl_obj.rollout_chunk(remote, args["obs"], args["prev"], args["noise"],
                                          args["method"], args["s"], args["d"], args["arrival"], args["T"],
                                          args["window"], args["max_guidance"])
             result = {k: np.asarray(res[k], np.float64).tolist() for k in ("chunk", "executed")}

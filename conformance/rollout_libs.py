@@ -17,55 +17,82 @@ from .rollout_impls import METHODS, check_request
 
 
 class JaxRollout:
-    """softrtc.jax: ``executor.shift_prior``, ``methods.method_weights``, the samplers, ``executor.segment``."""
+    """softrtc.jax: ``executor.shift_prior``, ``methods.method_weights``, the samplers, ``executor.segment``.
+
+    The samplers run jitted, one program per sampler and step count; the field is reached through
+    ``jax.pure_callback``, which looks up the request's field when called, so one program serves every
+    request."""
 
     name = "jax"
     time_convention = "data_at_1"
     rollout_methods = METHODS
 
-    def _velocity_fn(self, field):
+    def __init__(self):
+        self._field = None
+        self._programs = {}
+        self._vf = None
+
+    def _host(self, which: str):
+        def call(*arrays):
+            fn = self._field if which == "velocity" else self._field.vjp
+            rows = [np.asarray(a, np.float64) for a in arrays]
+            return np.stack([fn(*(r[b] for r in rows)) for b in range(rows[1].shape[0])]).astype(np.float32)
+        return call
+
+    def _velocity_fn(self):
         import jax
         import jax.numpy as jnp
 
-        def host(fn):
-            def call(*arrays):
-                rows = [np.asarray(a, np.float64) for a in arrays]
-                B = rows[1].shape[0]
-                return np.stack([fn(*(r[b] for r in rows)) for b in range(B)]).astype(np.float32)
-            return call
+        if self._vf is None:
+            @jax.custom_vjp
+            def v(obs, x, t):
+                return jax.pure_callback(self._host("velocity"), jax.ShapeDtypeStruct(x.shape, jnp.float32), obs, x,
+                                         t)
 
-        @jax.custom_vjp
-        def v(obs, x, t):
-            return jax.pure_callback(host(field), jax.ShapeDtypeStruct(x.shape, jnp.float32), obs, x, t)
+            def fwd(obs, x, t):
+                return v(obs, x, t), (obs, x, t)
 
-        def fwd(obs, x, t):
-            return v(obs, x, t), (obs, x, t)
+            def bwd(res, ct):
+                obs, x, t = res
+                g = jax.pure_callback(self._host("vjp"), jax.ShapeDtypeStruct(x.shape, jnp.float32), obs, x, t, ct)
+                return jnp.zeros_like(obs), g, jnp.zeros_like(t)
 
-        def bwd(res, ct):
-            obs, x, t = res
-            g = jax.pure_callback(host(field.vjp), jax.ShapeDtypeStruct(x.shape, jnp.float32), obs, x, t, ct)
-            return jnp.zeros_like(obs), g, jnp.zeros_like(t)
+            v.defvjp(fwd, bwd)
+            self._vf = v
+        return self._vf
 
-        v.defvjp(fwd, bwd)
-        return v
+    def _program(self, kind: str, T: int, beta: float):
+        import jax
+
+        from softrtc.jax import guidance, sampler
+
+        key = (kind, T, beta)
+        if key not in self._programs:
+            vf = self._velocity_fn()
+            if kind == "naive":
+                fn = lambda o, n, y, w: sampler.naive_sample(vf, o, n, T, unroll=False)  # noqa: E731
+            elif kind == "guided":
+                fn = lambda o, n, y, w: guidance.guided_sample(vf, o, n, y, w, T, beta, unroll=False)  # noqa: E731
+            else:
+                fn = lambda o, n, y, w: sampler.rtc_sample(vf, o, n, y, w, T, unroll=False)  # noqa: E731
+            self._programs[key] = jax.jit(fn)
+        return self._programs[key]
 
     def rollout_chunk(self, field, obs, prev, noise, method, s, d, arrival, T, window, max_guidance):
-        from softrtc.jax import executor, guidance, methods, sampler
+        from softrtc.jax import executor, methods
         from softrtc.jax import weights as jw
 
         H, e = check_request(obs, prev, noise, method, s, d, arrival, T, window, max_guidance)
-        vf = self._velocity_fn(field)
+        self._field = field
         o, n = np.asarray(obs, np.float32)[None], np.asarray(noise, np.float32)[None]
         if prev is None or method == "naive":
-            chunk = sampler.naive_sample(vf, o, n, T)[0]
+            chunk = self._program("naive", T, 0.0)(o, n, n, np.zeros(H, np.float32))[0]
         else:
-            prior = executor.shift_prior(np.asarray(prev, np.float32), s)
+            prior = np.asarray(executor.shift_prior(np.asarray(prev, np.float32), s))
             win = None if window is None else jw.from_reference(window_from_dict(window))
-            w = methods.method_weights(method, H, s, d, win)
-            if method.startswith("inference_"):
-                chunk = guidance.guided_sample(vf, o, n, prior[None], w, T, max_guidance)[0]
-            else:
-                chunk = sampler.rtc_sample(vf, o, n, prior[None], w, T)[0]
+            w = np.asarray(methods.method_weights(method, H, s, d, win))
+            kind = "guided" if method.startswith("inference_") else "rtc"
+            chunk = self._program(kind, T, float(max_guidance))(o, n, prior[None], w)[0]
         chunk = np.asarray(chunk)
         if prev is None:
             return {"chunk": chunk, "executed": chunk[:s]}
