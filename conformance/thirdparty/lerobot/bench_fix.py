@@ -33,7 +33,7 @@ DIFF = Path(__file__).resolve().parent / "lerobot-0.6.1-pullback-jacobian.diff"
 
 
 def source_hunks(diff_text: str) -> str:
-    """The part of the diff that changes ``modeling_rtc.py`` (the rest updates LeRobot's test)."""
+    """The part of the diff that changes ``modeling_rtc.py`` (the rest updates LeRobot's tests)."""
     parts = diff_text.split("--- a/")
     return "".join("--- a/" + p for p in parts[1:] if p.startswith("src/lerobot/policies/rtc/modeling_rtc.py"))
 
