@@ -23,7 +23,7 @@ from softrtc.reference._validate import check_choice, check_int
 from softrtc.reference.guidance import MAX_GUIDANCE
 from softrtc.reference.weights import SoftWindow
 
-from .results import CaseResult
+from .results import UNSUPPORTED_CASE, CaseResult
 from .rollout_diagnose import TOL, diagnose_chunk, diagnose_executed, within
 from .rollout_impls import METHODS, ReferenceRollout
 from .runner import CaseFailure, compare
@@ -222,7 +222,7 @@ def run_episode(answer, field, world, settings: Settings, method: str, episode: 
         except NotImplementedError as exc:
             ep.unsupported = str(exc) or "NotImplementedError"
             if checker is not None:
-                checker.fail_request(ep, c, f"unsupported: {ep.unsupported}", "unsupported")
+                checker.fail_request(ep, c, f"{UNSUPPORTED_CASE}: {ep.unsupported}", "unsupported")
             break
         except Exception as exc:  # noqa: BLE001 - the implementation's failure ends its episode, reported
             ep.error = f"request {c}: {type(exc).__name__}: {str(exc)[:300]}"

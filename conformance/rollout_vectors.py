@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from . import SPEC_VERSION, vectors_dir
-from .results import CaseResult, RunResult
+from .results import UNSUPPORTED_CASE, CaseResult, RunResult
 from .rollout_diagnose import TOL
 from .rollout_loop import EXEC_REQS, Checker, Episode, Settings, chunk_requirements, run_episode
 from .runner import CaseFailure, compare
@@ -166,7 +166,7 @@ def replay(impl=None, *, impl_cmd=None, vectors_dir=None, in_process: bool = Fal
                 got = under.answer(n, args)
             except NotImplementedError as exc:
                 out.append(CaseResult(case["id"], FILE, "rollout_chunk", case["requirements"], "unsupported", 0.0,
-                                      f"unsupported case: {exc}"))
+                                      f"{UNSUPPORTED_CASE}: {exc}"))
                 continue
             except Exception as exc:  # noqa: BLE001 - the implementation's failure is the case's
                 out.append(CaseResult(case["id"], FILE, "rollout_chunk", case["requirements"], "fail", float("inf"),
