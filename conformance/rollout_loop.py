@@ -26,7 +26,7 @@ from softrtc.reference.weights import SoftWindow
 from .results import UNSUPPORTED_CASE, CaseResult
 from .rollout_diagnose import TOL, diagnose_chunk, diagnose_executed, within
 from .rollout_impls import METHODS, ReferenceRollout
-from .runner import CaseFailure, compare
+from .compare import CaseFailure, compare
 
 # Requirements each output of a request is checked for ([CR-2]).
 _SAMPLER_REQS = {"naive": ["S-2"], "train_hard": ["S-3", "W-8"], "train_soft": ["S-3", "W-7"],

@@ -25,7 +25,7 @@ from . import SPEC_VERSION, vectors_dir
 from .results import UNSUPPORTED_CASE, CaseResult, RunResult
 from .rollout_diagnose import TOL
 from .rollout_loop import EXEC_REQS, Checker, Episode, Settings, chunk_requirements, run_episode
-from .runner import CaseFailure, compare
+from .compare import CaseFailure, compare
 from .vectors_io import parse_json
 
 ROLLOUT_VECTOR_FORMAT = "1.0"
