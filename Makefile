@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 # only Linux build of torch for 3.12 is the CUDA one, about 4.7 GB with its nvidia packages; it runs on the CPU),
 # numpy and softrtc without dependencies. Measured set-up times are in spec/41-thirdparty.md [TP-7].
 LEROBOT_STAMP := $(VENV)/.lerobot-0.4.4
-PYTHON312 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.12*/bin/python3.12) python3.12)
+PYTHON312 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.12*/bin/python3.12 /root/.pyenv/versions/3.12*/bin/python3.12) python3.12)
 LEROBOT_NEW_VENV := .venv-lerobot-0.6.1
 LEROBOT_NEW_STAMP := $(LEROBOT_NEW_VENV)/.installed
 
