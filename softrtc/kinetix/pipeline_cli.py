@@ -102,6 +102,8 @@ def add_pipeline_subparsers(sub) -> None:
     gd.add_argument("--batch-size", type=int_in("value", 1, 1 << 20), default=256,
                     help="steps per env and block (default 256)")
     gd.add_argument("--solve-rate-threshold", type=real_in("value", 0.0, 1.0), default=0.65, help="default 0.65")
+    gd.add_argument("--no-resume", action="store_true",
+                    help="record again even if the level's data and meta files match these settings")
     _common(gd)
     gd.set_defaults(func=_generate_data)
 
@@ -207,13 +209,13 @@ def _generate_data(args) -> int:
             r = generate_data(args.run, lv, out_dir=args.out, num_envs=args.num_envs, num_steps=args.num_steps,
                               batch_size=args.batch_size, seed=args.seed,
                               solve_rate_threshold=args.solve_rate_threshold, levels_dir=args.levels_dir,
-                              progress=not args.no_progress)
+                              progress=not args.no_progress, resume=not args.no_resume)
             st = r["episode_stats"]
             below = sum(not e["good"] for e in r["experts"])
             print(f"{lv}: {r['steps_per_env'] * r['num_envs']} steps, {st['num_episodes']} episodes, solve rate "
                   f"{st['solved']:.3f}, {len(r['experts'])} expert(s)"
                   + (f", {below} below the threshold {args.solve_rate_threshold}" if below else "")
-                  + f" -> {r['path']}")
+                  + f" -> {r['path']}" + (" (already recorded, read back)" if r["resumed"] else ""))
         return 0
 
     return _run("generate-data", body, args)

@@ -89,13 +89,26 @@ def select_experts(run_dir: str | os.PathLike, level: str, solve_rate_threshold:
 def generate_data(run_dir: str | os.PathLike, level: str, *, out_dir: str | os.PathLike | None = None,
                   num_envs: int = 128, num_steps: int = 1_000_000, batch_size: int = 256, seed: int = 0,
                   solve_rate_threshold: float = 0.65, levels_dir: str | os.PathLike | None = None,
-                  progress: bool = True) -> dict:
-    """Record expert data for ``level`` from the experts of ``run_dir`` ([KP-9], [KP-10]); returns a summary."""
+                  progress: bool = True, resume: bool = True) -> dict:
+    """Record expert data for ``level`` from the experts of ``run_dir`` ([KP-9], [KP-10]); returns a summary.
+
+    With ``resume``, a level whose data file and meta file exist for the same experts, envs, steps,
+    seed and threshold is not recorded again; its summary is read back (``"resumed": True``) ([KP-15]).
+    """
+    if not isinstance(resume, bool):
+        raise ValueError(f"resume must be a bool, got {resume!r}")
     chosen = select_experts(run_dir, level, solve_rate_threshold, seed)
     num_envs = check_int("num_envs", num_envs, 1, 1 << 16)
     per_env = steps_per_env(num_steps, num_envs, batch_size)
     out = Path(run_dir) / "data" if out_dir is None else Path(out_dir)
     check_out_dir("out_dir", out, (kdata.expert_data_filename(level),))
+    meta_path = out / f"worlds_l_{level}.meta.json"
+    want = {"level": level, "num_envs": num_envs, "steps_per_env": per_env, "seed": seed,
+            "solve_rate_threshold": solve_rate_threshold, "experts": chosen}
+    if resume and meta_path.is_file() and (out / kdata.expert_data_filename(level)).is_file():
+        saved = json.loads(meta_path.read_text())
+        if {k: saved.get(k) for k in want} == json.loads(json.dumps(want)):
+            return dict(saved, path=str(out / kdata.expert_data_filename(level)), resumed=True)
     params = [kexp.load_expert(c["path"]) for c in chosen]
     dims = {kexp.expert_dims(p) for p in params}
     task = kenv.make_env(level, levels_dir)
@@ -159,5 +172,5 @@ def generate_data(run_dir: str | os.PathLike, level: str, *, out_dir: str | os.P
     stats = kdata.ExpertData(**arrays).episode_stats()
     meta = {"level": level, "num_envs": E, "steps_per_env": per_env, "seed": seed,
             "solve_rate_threshold": solve_rate_threshold, "experts": chosen, "episode_stats": stats}
-    write_atomic(out / f"worlds_l_{level}.meta.json", lambda f: json.dump(meta, f, indent=2))
-    return dict(meta, path=str(path))
+    write_atomic(meta_path, lambda f: json.dump(meta, f, indent=2))
+    return dict(meta, path=str(path), resumed=False)

@@ -184,10 +184,10 @@ TINY_POLICY = ["--channel-dim", "8", "--channel-hidden-dim", "8", "--token-hidde
 @needs_levels
 @pytest.mark.slow
 def test_pipeline_end_to_end_tiny(tmp_path, capsys, restore_cache):
-    """KP-4, KP-6, KP-7, KP-8, KP-9, KP-10, KP-11, KP-12, KP-13, KC-1: train-expert -> generate-data ->
+    """KP-4, KP-6, KP-7, KP-8, KP-9, KP-10, KP-11, KP-12, KP-13, KP-15, KC-1: train-expert -> generate-data ->
     train-bc -> finetune -> eval on one level with tiny budgets, every file in the release's layout; a
     resumed PPO run equals the uninterrupted one bitwise; recorded data obey the done/length/return
-    bookkeeping of [K-14]."""
+    bookkeeping of [K-14]; generate-data run again reads the recorded level back."""
     run, cc = tmp_path / "run", ["--compile-cache", str(tmp_path / "cc")]
     lv = ["--levels", "grasp_easy", "--levels-dir", str(LEVELS_DIR)]
     # 2 iterations, then resumed to 3; a second run goes to 3 in one go.
@@ -232,6 +232,13 @@ def test_pipeline_end_to_end_tiny(tmp_path, capsys, restore_cache):
                 last = s
             elif last == -1:
                 assert d.length[s, e] == 0 and d.return_[s, e] == 0
+    # [KP-15] the same command again reads the level back (the data file is not written again).
+    recorded = (run / "data" / f"{name}.npz").stat().st_mtime_ns
+    capsys.readouterr()
+    assert _cli("kinetix", "generate-data", "--run", str(run), *lv, "--num-envs", "2", "--num-steps", "32",
+                "--batch-size", "8", "--no-progress", *cc) == 0
+    assert "(already recorded, read back)" in capsys.readouterr().out
+    assert (run / "data" / f"{name}.npz").stat().st_mtime_ns == recorded
 
     bc = tmp_path / "bc"
     assert _cli("kinetix", "train-bc", "--data", str(run / "data"), "--levels", "grasp_easy", "--out", str(bc),

@@ -193,3 +193,21 @@ def test_screen_command_end_to_end_and_resume(tmp_path, capsys, restore_cache):
     bad[bad.index("--episodes") + 1] = "3"
     assert main(bad) == 2
     assert "baselines.json from another screen configuration" in capsys.readouterr().err
+
+
+def test_committed_m_h5_baselines_drop_the_level():
+    """KS-8, KS-2, KS-5: the committed baselines of m_h5_angry_birds: one used entry (motor 1), 5 constant
+    actions of 64 episodes, the half-speed motor solving all 64 and random actions 4 of 64; with them the
+    level is dropped on the constant-action rule whatever its expert does (even a perfect, delay-sensitive one)."""
+    from pathlib import Path
+
+    base = json.loads((Path(__file__).resolve().parents[2] / "results" / "kinetix" / "screen" / "m_h5_angry_birds"
+                       / "baselines.json").read_text())
+    assert base["meta"] == {"level": "m_h5_angry_birds", "episodes": 64, "seed": 0, "format": ks.FORMAT}
+    assert (base["motor_entries"], base["thruster_entries"]) == ([1], [])
+    assert [r["action"][1] for r in base["constant"]] == list(ks.MOTOR_GRID)
+    assert [r["solved"] for r in base["constant"]] == [0.0, 0.0, 0.0, 1.0, 0.0]
+    assert base["random"]["solved"] == 4 / 64
+    v = ks.screen_verdict(base, _delays(1.0, 0.5, 0.2, 0.0), ks.ScreenConfig())
+    assert not v["kept"] and v["reasons"] == ["a constant action solves it: [0.0, 0.5, 0.0, 0.0, 0.0, 0.0] solves "
+                                              "1.00 >= 0.5"]
