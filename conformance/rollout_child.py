@@ -69,7 +69,7 @@ class RolloutChild(Child):
             if line is protocol._EOF:
                 raise ChildLost(f"the implementation's process {self._death()} during this request")
             try:
-                msg = json.loads(line)
+                msg = protocol.parse_line(line)
             except ValueError:
                 msg = None
             if not isinstance(msg, dict) or msg.get("id") != rid:
@@ -148,7 +148,7 @@ def serve(impl: str, stdin, out) -> int:
     remote = RemoteField(None, out, stdin)  # one object for every request: an implementation may cache it
     for raw in iter(stdin.readline, b""):
         try:
-            msg = json.loads(raw)
+            msg = protocol.parse_line(raw)
             rid, args = msg["id"], dict(msg["args"])
         except (ValueError, KeyError, TypeError) as exc:
             send({"id": None, "error": {"kind": "bad_call", "message": f"unreadable request: {_describe(exc)}"}})

@@ -134,3 +134,23 @@ def test_command_reports_and_exit_status(tmp_path, capsys):
     assert set(effect["paired"]) == {"naive"} and effect["first_divergence"][0]["method"] == "naive"
     assert cli_main(["conformance", "rollout", "--impl", str(tmp_path / "missing.py"), "--in-process"]) == 2
     assert "softrtc conformance rollout: error:" in capsys.readouterr().err
+
+
+NESTED = r'''
+import json, sys
+print(json.dumps({"protocol": "softrtc-conformance", "version": 1, "name": "nested", "functions": ["rollout_chunk"]}),
+      flush=True)
+for line in sys.stdin:
+    print("[" * 100000 + "]" * 100000, flush=True)
+'''
+
+
+def test_deeply_nested_reply_fails_the_request_in_one_line(tmp_path):
+    """CR-6, CF-18 A reply nested deeper than the JSON parser follows fails its request with one protocol-error
+    line; the runner does not crash with a RecursionError."""
+    probe = tmp_path / "nested.py"
+    probe.write_text(NESTED)
+    out = rollout.run(impl_cmd=f"{sys.executable} {probe}", settings=Settings(("naive",), 1, (1,), 20))
+    res = out["result"]
+    assert not res.ok and res.counts["pass"] == 0
+    assert "protocol error" in res.cases[0].message and "\n" not in res.cases[0].message
