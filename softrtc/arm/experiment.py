@@ -270,16 +270,8 @@ def cpu_models(manifest: dict | None) -> list:
 def read_episodes(path) -> list:
     """Rows of an episode CSV as dicts with typed values (the machine's ``cpu_model`` column, [AX-9], is not read:
     older files lack it)."""
-    out = []
-    with open(path, newline="") as f:
-        for r in csv.DictReader(f):
-            d = {"row": r["row"]}
-            for k in ("seed", "delay", "episode", "env_seed", "success", "completed", "steps", "success_step"):
-                d[k] = int(r[k])
-            for k in ("completion", "D1", "D2", "D3", "boundary", "mean_abs_action"):
-                d[k] = float(r[k])
-            out.append(d)
-    return out
+    # [AX-12] A value of the wrong type is an error naming the file, the line and the field.
+    return rf.read_episode_rows(path)
 
 
 # --------------------------------------------------------------------------- policies

@@ -247,3 +247,15 @@ def test_workers_end_with_the_run(tmp_path, sig, status):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_resume_reads_episode_files_with_the_same_checks(folder):
+    """AX-12: the experiment's own reader (used to find complete cells on a resume) names the file, line and
+    field of a value of the wrong type, as the report's does."""
+    from softrtc.arm.experiment import read_episodes
+
+    eps = [_episode("naive", 0, 0, i) for i in range(3)]
+    eps[2]["steps"] = "12.5"
+    path = _write_cell(folder, "aaaa", 0, 0, eps)
+    with pytest.raises(ValueError, match=rf"^episode file {str(path)!r} line 4: steps must be an integer, got '12.5'$"):
+        read_episodes(path)
