@@ -668,3 +668,26 @@ def test_generate_rejects_file_as_out_dir(tmp_path):
     f.write_text("")
     with pytest.raises(ValueError, match="out_dir"):
         generate.generate(f)
+
+
+def test_run_records_its_own_duration_with_the_runner_clock(monkeypatch, vector_files):
+    """[CF-17] The duration a run reports (the figure [CF-17]'s targets are stated in, measured by `softrtc
+    conformance run`) is the runner's clock from before the vectors are read to after the child stops; here an
+    injected clock reads 100.0 at the start and 130.25 at the end."""
+    import time as real_time
+
+    readings = iter([100.0, 130.25])
+
+    class Clock:
+        def perf_counter(self):
+            return next(readings)
+
+        def __getattr__(self, name):
+            return getattr(real_time, name)
+
+    monkeypatch.setattr(runner, "time", Clock())
+    res = runner.run("reference", files=vector_files, only=["hard_weights"], in_process=True)
+    assert res.ok and res.counts["pass"] > 0
+    assert res.seconds == 30.25
+    with pytest.raises(StopIteration):
+        next(readings)  # exactly two readings: no other use of the run's clock
