@@ -94,7 +94,9 @@ def _format_table(res: dict) -> str:
              f"median of {cfg['calls']} interleaved calls after {cfg['warmup']} warm-up rounds; "
              f"{_machine(res['environment'])}, "
              f"jax {res['environment']['jax']}"]
-    head = f"{'method':<26s} {'path':<15s}" + "".join(f" {'b=' + b + ' ms':>10s} {'/naive':>7s}" for b in bs) \
+    # The method column is as wide as the longest label (at least 26, the width of the older tables).
+    w = max([26] + [len(r["label"]) for r in res["rows"]])
+    head = f"{'method':<{w}s} {'path':<15s}" + "".join(f" {'b=' + b + ' ms':>10s} {'/naive':>7s}" for b in bs) \
         + f" {'max|fast-sf|':>12s}"
     lines += [head, "-" * len(head)]
     for r in res["rows"]:
@@ -106,7 +108,7 @@ def _format_table(res: dict) -> str:
         diffs = [res["agreement"][b][ak]["max_abs_diff"] for b in bs
                  if r["path"] != "straightforward" and ak in res["agreement"][b]]
         path = "public-style" if r["path"] == "public" else r["path"]
-        lines.append(f"{r['label']:<26s} {path:<15s}{cells} {(f'{max(diffs):.1e}' if diffs else '-'):>12s}")
+        lines.append(f"{r['label']:<{w}s} {path:<15s}{cells} {(f'{max(diffs):.1e}' if diffs else '-'):>12s}")
     if res.get("vjp_cost"):
         lines += ["", "context (not targets)"]
         for b in bs:

@@ -172,13 +172,13 @@ def run_vjp(args) -> int:
 
 
 def run_table(args) -> int:
-    """Print the table of the first result file and the ratio ranges over all of them ([B-15]); no JAX work."""
+    """Print the table of the last result file and the ratio ranges over all of them ([B-15]); no JAX work."""
     from .bench_report import format_ranges, format_table, read_result
 
     prog = getattr(args, "_prog", "softrtc bench table")
     try:
         results = [read_result(p) for p in args.results]
-        print(format_table(results[0]))
+        print(format_table(results[-1]))
         print()
         print(format_ranges(results))
     except ValueError as exc:
