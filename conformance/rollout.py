@@ -20,7 +20,7 @@ import shlex
 import sys
 import time
 
-from .._cli_util import command_error
+from .._cli_util import command_error, comma_list, int_in, real_in
 from .._files import write_json
 from . import SPEC_VERSION
 from .adapter import AdapterError
@@ -191,28 +191,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                     "module[:ATTR] or file.py[:ATTR] with rollout_chunk")
     who.add_argument("--impl-cmd", help="a program speaking the rollout protocol ([CR-4])")
     parser.add_argument("--env", default="arm", choices=ENVS, help="simulator (kinetix: not implemented)")
-    parser.add_argument("--episodes", type=int, default=5,
+    # ASCII digits and the library's ranges at the door ([N-11]): int() would read '١' as 1.
+    parser.add_argument("--episodes", type=int_in("episodes", 1, 10_000), default=5,
                         help="episodes per method (default 5: 20 episodes with the default methods)")
     parser.add_argument("--methods", default="naive,train_hard,train_soft,inference_hard",
                         help="comma-separated methods of [S-6] (default naive,train_hard,train_soft,inference_hard)")
-    parser.add_argument("--delays", default="0,1,2,3,4,5", help="delays drawn for requests c >= 1 (default 0..5)")
-    parser.add_argument("--max-steps", type=int, default=400, help="ticks per episode at most (default 400)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of environments, noise and delays (default 0)")
+    parser.add_argument("--delays", type=comma_list("delay", int_in("each delay", 0, 5)), default=[0, 1, 2, 3, 4, 5],
+                        help="delays drawn for requests c >= 1 (default 0..5)")
+    parser.add_argument("--max-steps", type=int_in("max_steps", 1, 1000), default=400,
+                        help="ticks per episode at most (default 400)")
+    parser.add_argument("--seed", type=int_in("seed", 0, 2**31 - 1), default=0,
+                        help="seed of environments, noise and delays (default 0)")
     parser.add_argument("--checkpoint", default=None, help="arm checkpoint to serve (default the drift base)")
     parser.add_argument("--in-process", action="store_true", help="call a Python implementation in this process")
-    parser.add_argument("--case-timeout", type=float, default=60.0, help="seconds per request (default 60)")
+    parser.add_argument("--case-timeout", type=real_in("case_timeout", 0.0, 86_400.0, lo_open=True), default=60.0,
+                        help="seconds per request (default 60)")
     parser.add_argument("--vectors", nargs="?", const="", default=None,
                         help="replay the rollout vectors open loop (DIR, default the shipped ones) instead")
     parser.add_argument("--report", help="write the JSON report here")
     parser.add_argument("--junit", help="write JUnit XML here")
     parser.add_argument("--effect", help="write the closed-loop effect (paired differences) as JSON here")
-
-
-def _ints(name: str, text: str) -> tuple:
-    try:
-        return tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise ValueError(f"{name} must be comma-separated integers, got {text!r}") from None
 
 
 def run_from_args(args) -> int:
@@ -225,7 +223,7 @@ def run_from_args(args) -> int:
                          in_process=args.in_process, timeout=args.case_timeout)
         else:
             methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-            settings = Settings(methods, args.episodes, _ints("delays", args.delays), args.max_steps, args.seed)
+            settings = Settings(methods, args.episodes, tuple(args.delays), args.max_steps, args.seed)
             out = run(args.impl, impl_cmd=args.impl_cmd, settings=settings, env=args.env,
                       checkpoint=args.checkpoint, in_process=args.in_process, timeout=args.case_timeout)
     except (AdapterError, ImplementationError, ValueError, ImportError) as exc:

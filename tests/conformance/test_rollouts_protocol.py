@@ -154,3 +154,18 @@ def test_deeply_nested_reply_fails_the_request_in_one_line(tmp_path):
     res = out["result"]
     assert not res.ok and res.counts["pass"] == 0
     assert "protocol error" in res.cases[0].message and "\n" not in res.cases[0].message
+
+
+@pytest.mark.parametrize("opt,value,msg", [("--episodes", "\u0661", "episodes must be an integer in [1, 10000]"),
+                                           ("--delays", "0,\u0663", "each delay must be an integer in [0, 5]"),
+                                           ("--max-steps", "1001", "max_steps must be an integer in [1, 1000]"),
+                                           ("--seed", "-1", "seed must be an integer in [0, 2147483647]"),
+                                           ("--case-timeout", "nan", "case_timeout must be a finite number")])
+def test_rollout_options_checked_at_the_door(capsys, opt, value, msg):
+    """N-11, CR-1 Options of `conformance rollout` take ASCII digits within the library's ranges; anything else
+    is one usage error (status 2) before any episode runs."""
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["conformance", "rollout", "--impl", "reference", opt, value])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert msg in err and "Traceback" not in err
