@@ -211,3 +211,20 @@ def test_committed_m_h5_baselines_drop_the_level():
     v = ks.screen_verdict(base, _delays(1.0, 0.5, 0.2, 0.0), ks.ScreenConfig())
     assert not v["kept"] and v["reasons"] == ["a constant action solves it: [0.0, 0.5, 0.0, 0.0, 0.0, 0.0] solves "
                                               "1.00 >= 0.5"]
+
+
+def test_committed_screen_report_is_its_results():
+    """KS-7, KS-8, KS-5: the committed screen.md is format_screen of the committed screen.json, and every
+    level's verdict there is the one screen_verdict gives from its committed stage files."""
+    from pathlib import Path
+
+    d = Path(__file__).resolve().parents[2] / "results" / "kinetix" / "screen"
+    res = json.loads((d / "screen.json").read_text())
+    cfg = dict(res["config"], ppo=PPOConfig(**res["config"]["ppo"]))
+    config = ks.ScreenConfig(**cfg)
+    assert (d / "screen.md").read_text() == ks.format_screen(res["levels"], config)
+    for r in res["levels"]:
+        base = json.loads((d / r["level"] / "baselines.json").read_text())
+        delays = json.loads((d / r["level"] / "delays.json").read_text())
+        v = ks.screen_verdict(base, delays, config)
+        assert (v["kept"], v["reasons"]) == (r["kept"], r["reasons"])
