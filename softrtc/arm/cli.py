@@ -1,10 +1,12 @@
-"""``softrtc arm`` subcommands: ``train``, ``study``, ``expert``, ``experiment``, ``report`` (spec [A-14], [A-20], [A-25], [AX-4])."""
+"""``softrtc arm`` subcommands: ``train``, ``study``, ``expert``, ``mechanism``, ``experiment``, ``report`` (spec [A-14],
+[A-20], [A-25], [AX-4], [AX-5])."""
 
 from __future__ import annotations
 
 import os
 
-from .._cli_util import command_error, group_help, input_dir, int_in, missing_extra, output_dir, real_in
+from .._cli_util import (command_error, comma_list, group_help, input_dir, int_in, missing_extra, output_dir,
+                         output_file, real_in)
 
 __all__ = ["add_subparsers", "demo"]
 
@@ -58,6 +60,23 @@ def add_subparsers(subparsers) -> None:
     ex.add_argument("--seed0", type=int_in("value", 0, SEED_MAX), default=0, help="first seed (default 0)")
     ex.set_defaults(func=_expert)
 
+    from .tasks import TASKS
+
+    me = sub.add_parser("mechanism", help="where a soft checkpoint's executed window tokens go under each solver "
+                                          "step: pull toward the prior ([AX-5])")
+    me.add_argument("--checkpoint", required=True, help="arm checkpoint of a soft fine-tune (an .npz file)")
+    me.add_argument("--task", choices=tuple(TASKS), default="drift", help="task setting (default drift)")
+    me.add_argument("--delays", type=comma_list("delay", int_in("each delay", 1, 5)), default=[1, 2, 3, 4, 5],
+                    help="delays d >= 1 (default 1,2,3,4,5)")
+    me.add_argument("--episodes", type=int_in("episodes", 1, 10_000), default=20,
+                    help="closed-loop episodes per delay and step (default 20)")
+    me.add_argument("--max-steps", type=int_in("max_steps", 1, 1000), default=1000,
+                    help="ticks per episode at most (default 1000)")
+    me.add_argument("--out", type=output_file(), default=os.path.join("runs", "mechanism.json"),
+                    help="JSON output (default runs/mechanism.json; the committed one is "
+                         "results/arm/drift/mechanism.json)")
+    me.set_defaults(func=_mechanism)
+
     from .experiment_cli import add_experiment_parsers
 
     add_experiment_parsers(sub)
@@ -84,6 +103,15 @@ def _study(args) -> int:
 
     run_study(args.checkpoints, trials=args.trials, added_latency_s=args.latency_ms / 1000.0, seed0=args.seed0,
               key_seed=args.key_seed, out_dir=args.out, max_steps=args.max_steps)
+    return 0
+
+
+def _mechanism(args) -> int:
+    from .mechanism import measure_pull, write_pull
+
+    res = measure_pull(args.checkpoint, args.task, tuple(args.delays), args.episodes, max_steps=args.max_steps)
+    write_pull(res, args.out)
+    print(f"wrote {args.out}")
     return 0
 
 

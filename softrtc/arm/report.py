@@ -142,7 +142,8 @@ def _mechanism_section(res) -> list:
              "checkpoint, observation and noise, naive sampler) and the prior `y`. *pull* = `<a - f, y - f> / "
              "|y - f|^2` (the weights ask for `w_j`), *closer*: share of tokens with `|a - y| < |f - y|`, "
              "*aside*: median `|(a - f) - pull (y - f)|`, the movement unrelated to the prior "
-             "(`softrtc/arm/mechanism.py`).", "",
+             "(`softrtc arm mechanism --checkpoint CKPT --out results/arm/drift/mechanism.json`, "
+             "`softrtc/arm/mechanism.py`).", "",
              "| d | tokens (j) | mean w | step | median pull [q25, q75] | closer | aside | moved | success |",
              "|---|---|---|---|---|---|---|---|---|"]
     for step, per in mech["steps"].items():

@@ -109,3 +109,28 @@ def test_recomputed_finetune_may_start_new_cells_only(tmp_path):
     cell.unlink()
     with pytest.raises(ValueError, match="no committed cell"):
         ex._check_recorded(out, task, budget, "hard", 1, [args], 10_000, 0, print)
+
+
+def test_mechanism_command_writes_the_measurement(tmp_path, capsys):
+    """AX-5: `softrtc arm mechanism` measures both solver steps on the same paired episodes and writes one JSON
+    file; at d = 2 (H = 10, s = 5, lam 2) the executed window tokens are j = 2, 3 with weights 2/3 and 1/3.
+    Bad options are one usage error before any episode runs."""
+    import json
+
+    from softrtc.cli import main
+
+    out = tmp_path / "m.json"
+    ck = str(get_task("drift").base_checkpoint())
+    assert main(["arm", "mechanism", "--checkpoint", ck, "--delays", "2", "--episodes", "1", "--max-steps", "30",
+                 "--out", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert set(got["steps"]) == {"algorithm1", "consistent"}
+    for step in ("algorithm1", "consistent"):
+        e = got["steps"][step]["2"]
+        assert e["window_tokens"] == [2, 3] and abs(e["intended"] - 0.5) < 1e-12
+        assert e["tokens"] > 0 and 0.0 <= e["closer_share"] <= 1.0
+    with pytest.raises(SystemExit) as exc:
+        main(["arm", "mechanism", "--checkpoint", ck, "--delays", "0"])
+    assert exc.value.code == 2 and "each delay must be an integer in [1, 5]" in capsys.readouterr().err
+    assert main(["arm", "mechanism", "--checkpoint", str(tmp_path / "none.npz")]) == 2
+    assert "checkpoint must be an arm checkpoint file" in capsys.readouterr().err

@@ -199,7 +199,7 @@ def test_traceback_switch_reraises_in_every_command(argv, exc, monkeypatch):
     ([], "demo, weights, examples, conformance, bench, arm, kinetix"),
     (["conformance"], "run, generate, report, rollout"),
     (["bench"], "runtime, vjp, table, torch"),
-    (["arm"], "train, study, expert, experiment, screen, report, torch"),
+    (["arm"], "train, study, expert, mechanism, experiment, screen, report, torch"),
     (["kinetix"], "eval, finetune, bench, levels, train-expert, generate-data, train-bc, screen"),
 ])
 def test_a_command_group_alone_is_a_usage_error(argv, names, capsys):
