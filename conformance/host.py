@@ -57,15 +57,21 @@ def serve(impl: str, stdin, out) -> int:
     return 0
 
 
+def protocol_stdout():
+    """The process's stdout as a text stream for protocol lines alone: file descriptor 1 and ``sys.stdout`` then
+    point to stderr, so whatever the implementation prints cannot corrupt the protocol ([CF-29])."""
+    out = os.fdopen(os.dup(1), "w", encoding="utf-8", newline="\n")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m softrtc.conformance.host",
                                      description="Serve a Python adapter over the conformance protocol ([CF-29]).")
     parser.add_argument("--impl", required=True, help="built-in adapter, module[:ATTR] or path/file.py[:ATTR]")
     args = parser.parse_args(argv)
-    out = os.fdopen(os.dup(1), "w", encoding="utf-8", newline="\n")
-    os.dup2(2, 1)  # the adapter's prints go to stderr; stdout is the protocol's alone
-    sys.stdout = sys.stderr
-    return serve(args.impl, sys.stdin.buffer, out)
+    return serve(args.impl, sys.stdin.buffer, protocol_stdout())
 
 
 if __name__ == "__main__":

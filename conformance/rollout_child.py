@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 
@@ -175,10 +174,9 @@ def main(argv=None) -> int:
                                      description="Serve a Python rollout implementation over the protocol ([CR-4]).")
     parser.add_argument("--impl", required=True, help="built-in rollout implementation, module[:ATTR] or file.py")
     args = parser.parse_args(argv)
-    out = os.fdopen(os.dup(1), "w", encoding="utf-8", newline="\n")
-    os.dup2(2, 1)  # the implementation's prints go to stderr; stdout is the protocol's alone
-    sys.stdout = sys.stderr
-    return serve(args.impl, sys.stdin.buffer, out)
+    from .host import protocol_stdout
+
+    return serve(args.impl, sys.stdin.buffer, protocol_stdout())
 
 
 if __name__ == "__main__":

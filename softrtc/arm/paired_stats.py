@@ -84,6 +84,18 @@ def cluster_bootstrap(values, num_resamples: int = 2000, seed: int = 0) -> dict:
     return {"mean": mean, "lo": float(np.percentile(means, 2.5)), "hi": float(np.percentile(means, 97.5)), "n": n}
 
 
+def _paired_differences(a, b) -> np.ndarray:
+    """``a - b`` of two paired ``[seeds, episodes]`` matrices, a one-row matrix paired with every row."""
+    a, b = as_matrix("a", a), as_matrix("b", b)
+    if a.shape[1] != b.shape[1]:
+        raise ValueError(f"a and b must have the same number of episodes, got {a.shape[1]} and {b.shape[1]}")
+    if a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0]):
+        raise ValueError(f"a and b must have the same number of seeds or one of them one, got {a.shape[0]} and "
+                         f"{b.shape[0]}")
+    S = max(a.shape[0], b.shape[0])
+    return np.broadcast_to(a, (S, a.shape[1])) - np.broadcast_to(b, (S, b.shape[1]))
+
+
 def paired_difference(a, b, num_resamples: int = 2000, seed: int = 0) -> dict:
     """Paired bootstrap of ``mean(a - b)`` over seeds and episodes.
 
@@ -93,15 +105,8 @@ def paired_difference(a, b, num_resamples: int = 2000, seed: int = 0) -> dict:
     "n"}``: ``p`` is the two-sided bootstrap p-value (twice the smaller share
     of resampled differences on either side of 0, at most 1).
     """
-    a, b = as_matrix("a", a), as_matrix("b", b)
-    if a.shape[1] != b.shape[1]:
-        raise ValueError(f"a and b must have the same number of episodes, got {a.shape[1]} and {b.shape[1]}")
-    if a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0]):
-        raise ValueError(f"a and b must have the same number of seeds or one of them one, got {a.shape[0]} and "
-                         f"{b.shape[0]}")
+    d = _paired_differences(a, b)
     _check_resamples(num_resamples, seed)
-    S = max(a.shape[0], b.shape[0])
-    d = np.broadcast_to(a, (S, a.shape[1])) - np.broadcast_to(b, (S, b.shape[1]))
     r = cluster_bootstrap(d, num_resamples, seed)
     if r["n"] < 2:
         return {"diff": r["mean"], "lo": r["lo"], "hi": r["hi"], "p": float("nan"), "n": r["n"]}
@@ -159,15 +164,8 @@ def sign_flip_test(a, b, num_resamples: int = 10_000, seed: int = 0) -> dict:
     >>> sign_flip_test([[1, 1, 1]], [[0, 0, 0]])["p"]   # 3 env seeds: 2 of 8 patterns are as extreme
     0.25
     """
-    a, b = as_matrix("a", a), as_matrix("b", b)
-    if a.shape[1] != b.shape[1]:
-        raise ValueError(f"a and b must have the same number of episodes, got {a.shape[1]} and {b.shape[1]}")
-    if a.shape[0] != b.shape[0] and 1 not in (a.shape[0], b.shape[0]):
-        raise ValueError(f"a and b must have the same number of seeds or one of them one, got {a.shape[0]} and "
-                         f"{b.shape[0]}")
+    d = _paired_differences(a, b)
     _check_resamples(num_resamples, seed)
-    S = max(a.shape[0], b.shape[0])
-    d = np.broadcast_to(a, (S, a.shape[1])) - np.broadcast_to(b, (S, b.shape[1]))
     ok = np.isfinite(d)
     keep = ok.any(axis=0)
     if not keep.any():
