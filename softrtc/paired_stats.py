@@ -1,4 +1,4 @@
-"""Statistics of the arm experiment: intervals over seeds and episodes, paired tests ([AX-7]).
+"""Statistics of the experiment reports: intervals over seeds and episodes, paired tests ([AX-7], [KR-3]).
 
 Values of one method and delay form a matrix ``V[seed, episode]`` (NaN where
 a metric is undefined for an episode, [A-24]). Every method of a task runs
@@ -14,7 +14,8 @@ import math
 
 import numpy as np
 
-__all__ = ["cluster_bootstrap", "paired_difference", "mcnemar_exact", "sign_flip_test", "holm", "as_matrix"]
+__all__ = ["cluster_bootstrap", "paired_difference", "mcnemar_exact", "sign_flip_test", "holm", "as_matrix",
+           "nested_bootstrap"]
 
 
 def as_matrix(name: str, values) -> np.ndarray:
@@ -216,3 +217,90 @@ def holm(pvalues) -> list:
         running = max(running, min(1.0, (m - k) * p[i]))
         out[i] = running
     return [float(round(x, 15)) if np.isfinite(x) else float("nan") for x in out]
+
+
+def _check_blocks(blocks) -> list:
+    if isinstance(blocks, (str, bytes, np.ndarray)) or not isinstance(blocks, (list, tuple)) or not blocks:
+        raise ValueError("blocks must be a non-empty list of real arrays [seeds, delays, episodes], one per cluster")
+    out = []
+    for i, b in enumerate(blocks):
+        try:
+            v = np.asarray(b, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"blocks[{i}] must be a real array [seeds, delays, episodes]") from None
+        if v.ndim != 3 or 0 in v.shape:
+            raise ValueError(f"blocks[{i}] must be a real array [seeds >= 1, delays >= 1, episodes >= 1], "
+                             f"got shape {list(v.shape)}")
+        if np.any(np.isinf(v)):
+            raise ValueError(f"blocks[{i}] must not hold infinities")
+        out.append(v)
+    return out
+
+
+def _counts(draws: np.ndarray, n: int) -> np.ndarray:
+    """How often each of ``0..n-1`` was drawn, per leading index: ``[..., k] -> [..., n]``."""
+    lead = draws.shape[:-1]
+    flat = (np.arange(int(np.prod(lead)))[:, None] * n + draws.reshape(-1, draws.shape[-1])).ravel()
+    return np.bincount(flat, minlength=int(np.prod(lead)) * n).reshape(*lead, n).astype(np.float64)
+
+
+def _cluster_means(v: np.ndarray, cs: np.ndarray, ce: np.ndarray) -> np.ndarray:
+    """Mean over delays of the mean over defined entries, with seeds and episodes weighted by counts.
+
+    ``v`` is ``[S, D, E]``, ``cs`` ``[..., S]`` and ``ce`` ``[..., E]``; returns
+    ``[...]`` (NaN where no delay has a defined entry).
+    """
+    ok = np.isfinite(v)
+    v0 = np.where(ok, v, 0.0)
+    tot = np.einsum("...s,sde,...e->...d", cs, v0, ce, optimize=True)
+    if ok.all():  # every entry defined: each delay counts every drawn (seed, episode) pair
+        cnt = np.broadcast_to((cs.sum(-1) * ce.sum(-1))[..., None], tot.shape)
+    else:
+        cnt = np.einsum("...s,sde,...e->...d", cs, ok.astype(np.float64), ce, optimize=True)
+    has = cnt > 0
+    per_d = np.where(has, tot / np.where(has, cnt, 1.0), 0.0)
+    nd = has.sum(-1)
+    return np.where(nd > 0, per_d.sum(-1) / np.maximum(nd, 1), np.nan)
+
+
+def nested_bootstrap(blocks, num_resamples: int = 2000, seed: int = 0) -> dict:
+    """Mean over clusters of ``V[seed, delay, episode]`` blocks and its two-stage bootstrap 95% interval ([KR-3]).
+
+    Each block is one cluster (a Kinetix level): its value is the mean over
+    delays of the mean over its defined entries (NaN where a metric is
+    undefined), and the statistic is the mean of the clusters' values. A
+    resample draws the clusters with replacement, then, within each drawn
+    cluster, its seeds and its episodes with replacement; an episode index is
+    one unit for every seed and delay of its cluster (the same environment
+    key). Returns ``{"mean", "lo", "hi", "n"}`` as :func:`cluster_bootstrap`
+    (``n`` the number of defined entries).
+
+    >>> r = nested_bootstrap([[[[1.0, 1.0]]], [[[3.0, 3.0]]]], 200, 0)
+    >>> r["mean"], r["lo"], r["hi"]
+    (2.0, 1.0, 3.0)
+    """
+    vs = _check_blocks(blocks)
+    _check_resamples(num_resamples, seed)
+    n = int(sum(np.isfinite(v).sum() for v in vs))
+    point = np.array([_cluster_means(v, np.ones(v.shape[0]), np.ones(v.shape[2])) for v in vs])
+    point = point[np.isfinite(point)]
+    if n == 0 or point.size == 0:
+        return {"mean": float("nan"), "lo": float("nan"), "hi": float("nan"), "n": n}
+    mean = float(point.mean())
+    if n == 1:
+        return {"mean": mean, "lo": float("nan"), "hi": float("nan"), "n": 1}
+    rng = np.random.default_rng(seed)
+    L, B = len(vs), num_resamples
+    which = rng.integers(0, L, size=(B, L))
+    stats = np.full((B, L), np.nan)
+    for c, v in enumerate(vs):
+        S, _, E = v.shape
+        # Every (resample, position) gets its own within-cluster draw, so a cluster drawn twice is resampled twice.
+        cs = _counts(rng.integers(0, S, size=(B, L, S)), S)
+        ce = _counts(rng.integers(0, E, size=(B, L, E)), E)
+        stats = np.where(which == c, _cluster_means(v, cs, ce), stats)
+    ok = np.isfinite(stats)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        means = np.where(ok, stats, 0.0).sum(1) / ok.sum(1)
+    means = means[np.isfinite(means)]
+    return {"mean": mean, "lo": float(np.percentile(means, 2.5)), "hi": float(np.percentile(means, 97.5)), "n": n}

@@ -1,4 +1,4 @@
-"""``softrtc kinetix {eval, finetune, bench}`` ([KE-12]).
+"""``softrtc kinetix {eval, finetune, bench, levels, report}`` ([KE-12], [KR-6]).
 
 JAX, flax and kinetix are imported when a subcommand runs, so ``softrtc
 --help`` stays fast; a missing dependency is reported by the top-level CLI
@@ -125,6 +125,22 @@ def add_subparsers(subparsers) -> None:
     lv = sub.add_parser("levels", help="list the level names every kinetix command accepts")
     lv.set_defaults(func=_list_levels)
 
+    rp = sub.add_parser("report", help="the study's paper-shaped table, paired tests, plots and verdicts from its "
+                                       "evaluation folders ([KR-6])")
+    rp.add_argument("--study", type=input_dir(), required=True,
+                    help="study folder whose eval/<level>/seed_<k>/ hold `kinetix eval` outputs "
+                         "(e.g. results/kinetix/study)")
+    rp.add_argument("--out", type=output_dir(), default=None, help="folder for the plots (default: --study)")
+    rp.add_argument("--bench", type=input_dir(), default=None,
+                    help="folder of `softrtc bench runtime` results runtime-<n>.json (default: results/bench "
+                         "beside the study's results folder)")
+    rp.add_argument("--page", type=output_file(), default=None,
+                    help="Markdown page whose kinetix-table block is rewritten (e.g. docs/reports/kinetix.md)")
+    rp.add_argument("--readme", type=output_file(), default=None,
+                    help="README whose kinetix-table block is rewritten (the main table and verdicts)")
+    rp.add_argument("--no-plots", action="store_true", help="write no PNG plots")
+    rp.set_defaults(func=_report)
+
     from .pipeline_cli import add_cache_options, add_distributed_options, add_pipeline_subparsers
 
     for p in (ev, ft):
@@ -149,6 +165,25 @@ def _list_levels(args) -> int:
         fits = all(v is not None and v <= klev.LARGE_ENV_PARAMS[f] for f, v in zip(klev.LARGE_ENV_PARAMS, sizes))
         print(f"  {name:<36} {sizes[0]:>8} {sizes[1]:>7} {sizes[2]:>6} {sizes[3]:>9}"
               + ("" if fits else f"  (only {name}{klev.OWN_SHAPES_SUFFIX})"))
+    return 0
+
+
+def _report(args) -> int:
+    from .._cli_util import missing_extra
+
+    hint = None if args.no_plots else missing_extra("matplotlib")  # [N-13]: at the door
+    if hint:
+        return command_error("softrtc kinetix report", hint)
+    from .study_table import write_report
+
+    try:
+        res = write_report(args.study, out=args.out, page=args.page, readme=args.readme, bench_dir=args.bench,
+                           plots=not args.no_plots)
+    except (ValueError, OSError) as exc:
+        return command_error("softrtc kinetix report", exc)
+    print(res["block"])
+    for w in res["written"]:
+        print(f"wrote {w}")
     return 0
 
 
