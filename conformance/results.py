@@ -50,6 +50,8 @@ class RunResult:
     isolation: str = "in process"  # or "child process" ([CF-29])
     # Which vectors ran ([CF-39]): vectors_io.describe_vectors's folder, index, files, digest, shipped.
     vectors: dict | None = None
+    # The rollout vectors' part ([CR-10]): status (run, unsupported, skipped), reason, folder, file, sha256, ...
+    rollouts: dict | None = None
 
     @property
     def counts(self) -> dict:
@@ -92,6 +94,8 @@ def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> s
         lines.append(f"vectors: {which}, {v['folder']} ({len(v['files'])} files, "
                      f"{'checked against its index.json' if v['index'] else 'no index.json'}; digest "
                      f"sha256:{v['digest'][:16]})")
+    if res.rollouts is not None:  # [CR-10]
+        lines.append(rollout_line(res.rollouts))
     for rid, e in res.by_requirement().items():
         n = e["pass"] + e["fail"]
         extra = f", {e['unsupported']} unsupported" if e["unsupported"] else ""
@@ -131,11 +135,31 @@ def format_summary(res: RunResult, max_failures: int = MAX_LISTED_FAILURES) -> s
     return "\n".join(lines)
 
 
+def rollout_line(r: dict) -> str:
+    """The summary's lines on the rollout vectors ([CR-10]): one per vector file, which ran or why not; one
+    line when none was read."""
+    if not r.get("files"):
+        return f"rollout vectors: {r['status']}, {r['reason']}"
+    lines = []
+    for name, e in r["files"].items():
+        where = (f"rollout vectors: {r['folder']}/{name} ({e['cases']} cases, checked against its index.json; "
+                 f"sha256:{e['sha256'][:16]})")
+        if e["status"] == "run":
+            load = (f" (implementation started and field loaded in {e['field_load_seconds']:.1f} s)"
+                    if "field_load_seconds" in e else "")
+            lines.append(f"{where}, field {e['field']} served{load}")
+        elif e["status"] == "unsupported":
+            lines.append(f"{where}, all unsupported: {e['reason']}")
+        else:
+            lines.append(f"{where}, skipped: {e['reason']}")
+    return "\n".join(lines)
+
+
 def report_dict(res: RunResult) -> dict:
     """The --report JSON document ([CF-15])."""
     return {"impl": res.impl, "adapter": res.adapter_name, "time_convention": res.time_convention,
             "format_version": res.format_version, "spec_versions": res.spec_versions, "ok": res.ok,
-            "isolation": res.isolation, "vectors": res.vectors,
+            "isolation": res.isolation, "vectors": res.vectors, "rollouts": res.rollouts,
             "seconds": round(res.seconds, 3), "counts": res.counts,
             "requirements": {k: {kk: (vv if not isinstance(vv, float) or math.isfinite(vv) else "inf")
                                  for kk, vv in v.items()} for k, v in res.by_requirement().items()},
@@ -159,7 +183,7 @@ def write_junit(res: RunResult, path) -> None:
                 props = ET.SubElement(s, "properties")
                 for name, value in (("vectors_folder", v["folder"]), ("vectors_digest", v["digest"]),
                                     ("vectors_shipped", "true" if v["shipped"] else "false"),
-                                    ("vector_file_sha256", v["files"].get(c.file, ""))):
+                                    ("vector_file_sha256", v["files"].get(c.file) or _rollout_sha(res, c.file))):
                     ET.SubElement(props, "property", name=name, value=value)
         s.set("tests", str(int(s.get("tests")) + 1))
         tc = ET.SubElement(s, "testcase", classname=f"conformance.{Path(c.file).stem}.{c.function}", name=c.id,
@@ -174,6 +198,10 @@ def write_junit(res: RunResult, path) -> None:
             s.set("skipped", str(int(s.get("skipped")) + 1))
             ET.SubElement(tc, "skipped", message=c.message)
     write_atomic(path, lambda f: ET.ElementTree(root).write(f, encoding="utf-8", xml_declaration=True), binary=True)
+
+
+def _rollout_sha(res: RunResult, name: str) -> str:
+    return ((res.rollouts or {}).get("files") or {}).get(name, {}).get("sha256", "")
 
 
 def write_report(res: RunResult, path) -> None:

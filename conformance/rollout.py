@@ -33,15 +33,23 @@ ROLLOUT_FORMAT = "rollout-1"
 ENVS = ("arm", "kinetix")
 
 
+class RequestLost(RuntimeError):
+    """The child was lost during a request (died, hung, broke the protocol) and was replaced ([CF-30])."""
+
+
 class _InProcess:
     """A Python rollout implementation called in the runner's process (``--in-process``)."""
 
     def __init__(self, impl, field):
         self.impl, self.name = impl, impl.name
         self.time_convention = getattr(impl, "time_convention", "data_at_1")
-        self.field = field if self.time_convention == "data_at_1" else field.flipped()
+        self.bind(field)
         self.methods = impl_methods(impl)
         self.isolation = "in process"
+
+    def bind(self, field) -> None:
+        """Serve ``field`` (None: not yet loaded) in the implementation's time convention ([V-1])."""
+        self.field = field if field is None or self.time_convention == "data_at_1" else field.flipped()
 
     def answer(self, c: int, args: dict) -> dict:
         return self.impl.rollout_chunk(self.field, **args)
@@ -53,13 +61,14 @@ class _InProcess:
 class _Child:
     """An implementation in a child process, the field served over the protocol ([CR-4])."""
 
-    def __init__(self, argv: list, label: str, field, timeout: float, start_timeout: float):
+    def __init__(self, argv: list, label: str, field, timeout: float, start_timeout: float,
+                 memory_mb: int | None = None):
         from .rollout_child import RolloutChild
 
-        self.child = RolloutChild(argv, start_timeout, label)
+        self.child = RolloutChild(argv, start_timeout, label, memory_mb)
         self.child.start()
         self.name, self.time_convention = self.child.name, self.child.time_convention
-        self.field = field if self.time_convention == "data_at_1" else field.flipped()
+        self.bind(field)
         self.methods = tuple(METHODS)
         self.timeout, self.rid = timeout, 0
         self.isolation = "child process"
@@ -70,7 +79,7 @@ class _Child:
             reply = self.child.call(self.rid, args, self.field, self.timeout)
         except ChildLost as exc:
             self.child.restart()
-            raise RuntimeError(str(exc)) from None
+            raise RequestLost(str(exc)) from None
         if "error" in reply:
             err = reply["error"] if isinstance(reply["error"], dict) else {"message": str(reply["error"])}
             text = f"{err.get('type', err.get('kind', 'error'))}: {err.get('message', '')}"
@@ -79,18 +88,23 @@ class _Child:
             raise RuntimeError(text)
         return reply["result"]
 
+    bind = _InProcess.bind
+
     def close(self) -> None:
         self.child.stop()
 
 
-def open_impl(impl, impl_cmd, field, in_process: bool, timeout: float = 60.0, start_timeout: float = 120.0):
-    """The implementation under test, in process or as a child ([CR-4]); AdapterError when it cannot load."""
+def open_impl(impl, impl_cmd, field, in_process: bool, timeout: float = 60.0, start_timeout: float = 120.0,
+              memory_mb: int | None = None):
+    """The implementation under test, in process or as a child ([CR-4]); AdapterError when it cannot load
+    (NoRolloutChunk or LacksRolloutChunk when it loads without ``rollout_chunk``). ``field`` None: bound
+    later with ``bind``, so a run loads JAX only for an implementation that has the function ([CR-10])."""
     if impl_cmd is not None:
-        return _Child(shlex.split(impl_cmd), f"impl-cmd {impl_cmd!r}", field, timeout, start_timeout)
+        return _Child(shlex.split(impl_cmd), f"impl-cmd {impl_cmd!r}", field, timeout, start_timeout, memory_mb)
     if in_process:
         return _InProcess(load_rollout_impl(impl), field)
     argv = [sys.executable, "-m", "softrtc.conformance.rollout_child", "--impl", impl]
-    return _Child(argv, f"impl {impl!r}", field, timeout, start_timeout)
+    return _Child(argv, f"impl {impl!r}", field, timeout, start_timeout, memory_mb)
 
 
 def paired(impl_eps: list, ref_eps: list) -> dict:

@@ -44,6 +44,11 @@ def _json(value):
     return value
 
 
+class LacksRolloutChunk(ImplementationError):
+    """The implementation started but its hello line does not list ``rollout_chunk`` ([CR-4]): `conformance
+    rollout` stops (status 2), `conformance run` counts the rollout cases unsupported ([CR-10])."""
+
+
 class RolloutChild(Child):
     """An implementation process answering ``rollout_chunk`` with field callbacks ([CR-4])."""
 
@@ -51,8 +56,8 @@ class RolloutChild(Child):
         super().start()
         if FUNCTION not in self.functions:
             self.stop()
-            raise ImplementationError(f"the implementation ({self.label}) does not list {FUNCTION} among its "
-                                      "functions in its hello line ([CR-4])")
+            raise LacksRolloutChunk(f"the implementation ({self.label}) does not list {FUNCTION} among its "
+                                    "functions in its hello line ([CR-4])")
 
     def call(self, rid: int, args: dict, field, timeout: float) -> dict:
         """One request; field requests are answered from ``field`` (the child's convention) until the reply.
@@ -131,7 +136,7 @@ def _error(rid, exc: BaseException) -> dict:
 
 def serve(impl: str, stdin, out) -> int:
     """Load the rollout implementation ``impl``, write the hello line, answer requests until stdin closes."""
-    from .rollout_impls import impl_methods, load_rollout_impl
+    from .rollout_impls import NoRolloutChunk, impl_methods, load_rollout_impl
 
     def send(obj: dict) -> None:
         out.write(json.dumps(obj, separators=(",", ":"), allow_nan=False) + "\n")
@@ -139,6 +144,14 @@ def serve(impl: str, stdin, out) -> int:
 
     try:
         impl_obj = load_rollout_impl(impl)
+    except NoRolloutChunk as exc:  # it loads but has no rollout_chunk: a hello listing no function ([CR-4])
+        name = getattr(exc.adapter, "name", None)
+        tc = getattr(exc.adapter, "time_convention", "data_at_1")
+        send(protocol.hello(name if isinstance(name, str) and name else impl,
+                            tc if tc in ("data_at_1", "noise_at_1") else "data_at_1", []))
+        for raw in iter(stdin.readline, b""):
+            send({"id": None, "error": {"kind": "unsupported", "message": f"no {FUNCTION}"}})
+        return 0
     except (AdapterError, ValueError, ImportError) as exc:
         send(protocol.hello_error(f"cannot load rollout implementation {impl!r}: {_describe(exc)}"))
         return 2

@@ -28,6 +28,7 @@ from softrtc.reference import methods as rmeth
 from softrtc.reference import sampler as rsamp
 from softrtc.reference._validate import check_array, check_choice, check_int
 
+from .adapter import AdapterError
 from .adapters.reference import window_from_dict
 
 METHODS = rmeth.METHODS
@@ -170,10 +171,20 @@ BUILTIN = {
 }
 
 
+class NoRolloutChunk(AdapterError):
+    """The adapter loaded but has no ``rollout_chunk`` ([CR-2]); ``adapter`` is the loaded object, so a
+    `conformance run` can count its rollout cases unsupported ([CR-10], [CF-9])."""
+
+    def __init__(self, message: str, adapter):
+        super().__init__(message)
+        self.adapter = adapter
+
+
 def load_rollout_impl(spec: str):
     """A rollout implementation: a name of :data:`BUILTIN`, or an adapter (``module[:ATTR]``,
-    ``file.py[:ATTR]``, [CF-12]) with ``name`` and ``rollout_chunk`` ([CR-2])."""
-    from .adapter import AdapterError, load_adapter
+    ``file.py[:ATTR]``, [CF-12]) with ``name`` and ``rollout_chunk`` ([CR-2]); NoRolloutChunk for an
+    adapter without it."""
+    from .adapter import load_adapter
 
     if isinstance(spec, str) and spec in BUILTIN:
         return BUILTIN[spec]()
@@ -181,7 +192,7 @@ def load_rollout_impl(spec: str):
         raise AdapterError(f"impl must be a built-in name {tuple(BUILTIN)}, module[:ATTR] or file.py[:ATTR]")
     adapter = load_adapter(spec)
     if not callable(getattr(adapter, "rollout_chunk", None)):
-        raise AdapterError(f"adapter '{spec}' has no rollout_chunk function ([CR-2])")
+        raise NoRolloutChunk(f"adapter '{spec}' has no rollout_chunk function ([CR-2])", adapter)
     return adapter
 
 

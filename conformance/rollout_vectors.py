@@ -15,6 +15,7 @@ replay with another checkpoint is refused).
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import time
 from pathlib import Path
@@ -33,6 +34,9 @@ FILE = "rollouts_arm.json"
 METHODS = ("naive", "train_hard", "train_soft", "inference_hard", "inference_soft")
 EPISODES = 2
 REQUESTS = 20
+FUNCTION = "rollout_chunk"
+# Requests in a row that lose the implementation's process before the remaining ones fail unrun ([CF-30]).
+MAX_LOST_IN_A_ROW = 3
 ARGS = ("obs", "prev", "noise", "method", "s", "d", "arrival", "T", "window", "max_guidance")
 
 
@@ -150,35 +154,58 @@ def replay(impl=None, *, impl_cmd=None, vectors_dir=None, in_process: bool = Fal
 
     header, cases = load(vectors_dir)
     field = ServedField()
-    if hashlib.sha256(Path(field.checkpoint).read_bytes()).hexdigest() != header.get("checkpoint_sha256"):
-        raise ValueError(f"the served checkpoint {field.checkpoint} is not the one the rollout vectors were "
-                         f"recorded with ({header.get('checkpoint')}, SHA-256 {header.get('checkpoint_sha256')})")
+    check_checkpoint(header, field.checkpoint)
     t0 = time.perf_counter()
     under = open_impl(impl, impl_cmd, field, in_process, timeout)
-    checker = Checker(field, "vectors")
-    out = []
     try:
-        for n, case in enumerate(cases):
-            args = _args(case)
-            ep = Episode(args["method"], 0, 0)
-            t1 = time.perf_counter()
-            try:
-                got = under.answer(n, args)
-            except NotImplementedError as exc:
-                out.append(CaseResult(case["id"], FILE, "rollout_chunk", case["requirements"], "unsupported", 0.0,
-                                      f"{UNSUPPORTED_CASE}: {exc}"))
-                continue
-            except Exception as exc:  # noqa: BLE001 - the implementation's failure is the case's
-                out.append(CaseResult(case["id"], FILE, "rollout_chunk", case["requirements"], "fail", float("inf"),
-                                      f"{type(exc).__name__}: {str(exc)[:300]}"))
-                continue
-            out.append(_judge(case, got, checker, ep, args, time.perf_counter() - t1))
+        out = replay_cases(under, field, cases)
     finally:
         under.close()
     res = RunResult(impl if impl is not None else impl_cmd, under.name, under.time_convention,
                     str(header.get("format_version")), [str(header.get("spec_version"))], out,
                     time.perf_counter() - t0, under.isolation)
     return {"result": res}
+
+
+def check_checkpoint(header: dict, path) -> None:
+    """ValueError unless the checkpoint file ``path`` is the one the rollout vectors were recorded with."""
+    if hashlib.sha256(Path(path).read_bytes()).hexdigest() != header.get("checkpoint_sha256"):
+        raise ValueError(f"the served checkpoint {path} is not the one the rollout vectors were "
+                         f"recorded with ({header.get('checkpoint')}, SHA-256 {header.get('checkpoint_sha256')})")
+
+
+def replay_cases(under, field, cases: list, name: str = FILE) -> list:
+    """One CaseResult per recorded request answered by ``under`` (an opened implementation, [CR-4]) on the
+    served ``field`` ([CR-10]): NotImplementedError makes the case unsupported ([CR-2], [CF-26]), any other
+    failure fails it; after MAX_LOST_IN_A_ROW requests in a row that lose the child, the rest fail unrun."""
+    from .rollout import RequestLost
+
+    checker = Checker(field, "vectors")
+    out, lost = [], []
+    for n, case in enumerate(cases):
+        if len(lost) >= MAX_LOST_IN_A_ROW:
+            out.append(CaseResult(case["id"], name, FUNCTION, case["requirements"], "fail", float("inf"),
+                                  f"not run: the implementation's process was lost on {len(lost)} requests in "
+                                  f"a row (last: {lost[-1]}) ([CF-30])"))
+            continue
+        args = _args(case)
+        ep = Episode(args["method"], 0, 0)
+        t1 = time.perf_counter()
+        try:
+            got = under.answer(n, args)
+        except NotImplementedError as exc:
+            out.append(CaseResult(case["id"], name, FUNCTION, case["requirements"], "unsupported", 0.0,
+                                  f"{UNSUPPORTED_CASE}: {exc}"))
+            lost.clear()
+            continue
+        except Exception as exc:  # noqa: BLE001 - the implementation's failure is the case's
+            out.append(CaseResult(case["id"], name, FUNCTION, case["requirements"], "fail", float("inf"),
+                                  f"{type(exc).__name__}: {str(exc)[:300]}", time.perf_counter() - t1))
+            lost = lost + [case["id"]] if isinstance(exc, RequestLost) else []
+            continue
+        lost.clear()
+        out.append(_judge(case, got, checker, ep, args, time.perf_counter() - t1))
+    return out
 
 
 def _judge(case: dict, got, checker, ep, args, seconds: float) -> CaseResult:
@@ -220,4 +247,126 @@ def check_generation(out_dir=None) -> list:
     return diffs
 
 
-__all__ = ["generate", "load", "replay", "rollouts_dir", "check_generation"]
+# ---------------------------------------------------------------- inside `conformance run`
+
+# What the runner needs to serve each file's field ([CR-3], [CR-14]), and the extra that installs it.
+NEEDS = {"arm": (("jax", "flax", "pymunk"), "arm")}
+FILES = {"arm": FILE}
+
+
+def served_checkpoint() -> Path:
+    """The checkpoint the runner serves on the arm ([CR-3]), found without importing the arm package (and
+    its JAX)."""
+    spec = importlib.util.find_spec("softrtc.arm")
+    if spec is None or not spec.submodule_search_locations:
+        raise ValueError("the package softrtc.arm, which holds the served checkpoint, is not installed")
+    return Path(list(spec.submodule_search_locations)[0]) / "checkpoints" / "drift" / "base.npz"
+
+
+def missing_module(env: str) -> str | None:
+    """The first module the runner lacks to serve the field of ``env``'s vectors, or None."""
+    return next((m for m in NEEDS[env][0] if importlib.util.find_spec(m) is None), None)
+
+
+def at_the_door(vectors_dir=None) -> dict:
+    """The rollout part of a `conformance run` ([CR-10]), decided before any case runs: every vector file the
+    index of ``rollouts_dir(vectors_dir)`` lists, read and checked (index, digest, format, env; the arm's
+    checkpoint), each to run or skipped with the reason (a field this installation cannot serve). Returns
+    the plan ``{"status": "run" | "skipped", "reason", "folder", "files": {name: {"env", "cases", "sha256",
+    "status", "reason"}}}`` (the cases and headers under ``_loaded``); ValueError for rollout vectors that are
+    present but cannot be read, or were recorded with another arm checkpoint."""
+    folder = rollouts_dir(vectors_dir)
+    if not folder.exists():
+        return {"status": "skipped", "reason": f"the vector folder has no rollouts/ ({folder})",
+                "folder": str(folder)}
+    envs = ("arm",)
+    files, loaded = {}, []
+    for env in envs:
+        header, cases = load(folder)
+        entry = {"env": env, "cases": len(cases), "sha256": hashlib.sha256((folder / FILES[env]).read_bytes())
+                 .hexdigest(), "status": "run", "reason": "",
+                 "field": header.get("checkpoint") if env == "arm" else f"Kinetix level {header.get('level')}"}
+        missing = missing_module(env)
+        if missing:
+            extra = NEEDS[env][1]
+            entry.update(status="skipped", reason=f"the runner serves their field with JAX: needs the '{extra}' "
+                                                  f"extra (missing module {missing}): pip install 'softrtc[{extra}]'")
+        elif env == "arm":
+            check_checkpoint(header, served_checkpoint())
+        files[FILES[env]] = entry
+        loaded.append((env, header, cases))
+    running = [e for e in files.values() if e["status"] == "run"]
+    return {"status": "run" if running else "skipped",
+            "reason": "" if running else "; ".join(sorted({e["reason"] for e in files.values()})),
+            "folder": str(folder.resolve()), "files": files, "_loaded": loaded}
+
+
+def skipped(reason: str) -> dict:
+    """The plan of a run that leaves the rollout vectors out, and says why ([CR-10])."""
+    return {"status": "skipped", "reason": reason}
+
+
+def run_part(plan: dict, result: RunResult, impl=None, *, impl_cmd=None, in_process: bool = False,
+             functions=(), timeout: float = 60.0, start_timeout: float = 120.0, memory_mb=None) -> None:
+    """The rollout cases of a `conformance run` ([CR-10]) added to ``result`` (``result.rollouts`` says what
+    ran): an implementation without ``rollout_chunk`` (an ``--impl-cmd`` whose hello line, ``functions``,
+    does not list it; an adapter without the attribute) has them unsupported without any field being
+    loaded ([CF-9]); otherwise it answers them in one process of its own (or in this one with
+    ``in_process``) on each file's served field, as ``conformance rollout --vectors`` does. One that cannot
+    start fails them; a file whose field cannot be served here is skipped with the reason."""
+    from .rollout import _InProcess, open_impl
+    from .rollout_child import LacksRolloutChunk
+    from .rollout_impls import NoRolloutChunk
+
+    info = {k: v for k, v in plan.items() if not k.startswith("_")}
+    result.rollouts = info
+    if plan["status"] != "run":
+        return
+    todo = [(env, header, cases) for env, header, cases in plan["_loaded"]
+            if info["files"][FILES[env]]["status"] == "run"]
+
+    def every_case(status: str, why: str) -> None:
+        info.update(status=status if status == "unsupported" else "run", reason=why)
+        for env, _, cases in todo:
+            info["files"][FILES[env]].update(status=info["status"], reason=why)
+            result.cases.extend(CaseResult(c["id"], FILES[env], FUNCTION, list(c["requirements"]), status,
+                                           0.0 if status == "unsupported" else float("inf"), why) for c in cases)
+
+    lacks = f"adapter has no {FUNCTION}"
+    if impl_cmd is not None and FUNCTION not in functions:
+        return every_case("unsupported", f"{lacks} (its hello line does not list it)")
+    try:
+        if impl_cmd is None and not isinstance(impl, str):
+            if not callable(getattr(impl, FUNCTION, None)):
+                return every_case("unsupported", lacks)
+            under = _InProcess(impl, None)
+        else:
+            under = open_impl(impl, impl_cmd, None, in_process, timeout, start_timeout, memory_mb)
+    except (NoRolloutChunk, LacksRolloutChunk):
+        return every_case("unsupported", lacks)
+    except Exception as exc:  # noqa: BLE001 - the implementation's failure to start is its cases'
+        return every_case("fail", f"the implementation could not be started for the rollout vectors: "
+                                  f"{type(exc).__name__}: {str(exc)[:300]}")
+    try:
+        for env, header, cases in todo:
+            entry = info["files"][FILES[env]]
+            t0 = time.perf_counter()
+            try:
+                from .rollout_field import ServedField
+
+                field = ServedField()
+                check_checkpoint(header, field.checkpoint)
+            except (ValueError, ImportError) as exc:
+                entry.update(status="skipped", reason=f"its field cannot be served here: {str(exc)[:300]}")
+                continue
+            under.bind(field)
+            entry["field_load_seconds"] = round(time.perf_counter() - t0, 3)
+            result.cases.extend(replay_cases(under, field, cases, FILES[env]))
+            entry["seconds"] = round(time.perf_counter() - t0, 3)
+    finally:
+        under.close()
+    if not any(e["status"] == "run" for e in info["files"].values()):
+        info.update(status="skipped", reason="; ".join(sorted({e["reason"] for e in info["files"].values()})))
+
+
+__all__ = ["generate", "load", "replay", "rollouts_dir", "check_generation", "at_the_door", "run_part"]

@@ -3,9 +3,11 @@
 
     softrtc conformance run --impl NAME_OR_MODULE:ATTR | --impl-cmd "COMMAND" [--in-process]
                             [--case-timeout S] [--case-memory-mb MB] [--report FILE] [--junit FILE]
-                            [--vectors DIR] [--only f1,f2]
+                            [--vectors DIR] [--only f1,f2] [--no-rollouts]
 
-Every case is one call of one interface function. The implementation runs in a
+Every case is one call of one interface function; the rollout vectors of
+``VECTORS/rollouts/`` follow, replayed on the served field as
+`conformance rollout --vectors` does ([CR-10]). The implementation runs in a
 child process of its own by default and answers over the protocol of
 :mod:`.protocol`; this process alone reads the vectors, compares and reports, so
 an implementation that hangs, exits or tampers with the runner's code fails
@@ -27,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .._cli_util import command_error, comma_list, input_dir, output_file, real_in
-from . import FORMAT_VERSION
+from . import FORMAT_VERSION, rollout_vectors
 from .adapter import ALTERNATES, INTERFACE, AdapterError, load_adapter
 # The comparison lives in compare.py; its names stay importable from here.
 from .compare import (CaseFailure, _decode, _flip_args, _flip_out, _number, _outputs, check_integers,  # noqa: F401
@@ -45,6 +47,8 @@ DEFAULT_START_TIMEOUT = 120.0
 # a runaway case fails instead of waking the system's OOM killer.
 DEFAULT_CASE_MEMORY_MB = 16384
 CASE_MEMORY_RANGE = (256, 1 << 20)
+# The rollout vectors' function ([CR-10]): not one of the interface of [CF-7], since it needs the served field.
+ROLLOUT_FUNCTION = rollout_vectors.FUNCTION
 # Requests sent ahead of the replies: the child computes the next cases while this process compares.
 WINDOW = 32
 # A function whose cases lose this many children in a row has its remaining cases failed without running.
@@ -218,13 +222,16 @@ def check_memory_mb(name: str, value) -> int:
 
 def run(impl=None, vectors_dir=None, only=None, files=None, *, impl_cmd=None, in_process=None,
         case_timeout=DEFAULT_CASE_TIMEOUT, start_timeout=DEFAULT_START_TIMEOUT,
-        case_memory_mb=DEFAULT_CASE_MEMORY_MB) -> RunResult:
-    """Run every case against an implementation ([CF-13], [CF-29]).
+        case_memory_mb=DEFAULT_CASE_MEMORY_MB, rollouts=None) -> RunResult:
+    """Run every case against an implementation ([CF-13], [CF-29]), the rollout vectors included ([CR-10]).
 
     ``impl``: an adapter spec string (run in a child process through :mod:`.host`, or in this process with
     ``in_process=True``) or an adapter object (in this process); ``impl_cmd``: a command line of a program
-    that speaks the protocol ([CF-31]). ``only``: function names to restrict the run; ``files``: vectors
-    already read by :func:`load_vectors`. Raises AdapterError (ImplementationError for a child that never
+    that speaks the protocol ([CF-31]). ``only``: function names to restrict the run (``rollout_chunk`` for
+    the rollout vectors); ``files``: vectors already read by :func:`load_vectors`. ``rollouts``: True runs
+    the rollout vectors of ``vectors_dir`` (default the shipped ones), False leaves them out, None (the
+    default) runs them when this call reads the vectors itself (``files`` None); a run that leaves them out
+    says why in ``RunResult.rollouts``. Raises AdapterError (ImplementationError for a child that never
     answers) or VectorError with a one-line message when nothing can run.
     """
     t0 = time.perf_counter()
@@ -232,9 +239,12 @@ def run(impl=None, vectors_dir=None, only=None, files=None, *, impl_cmd=None, in
         if isinstance(only, (str, bytes)) or not hasattr(only, "__iter__"):
             raise ValueError(f"only must be None or a collection of interface function names, got {only!r}")
         only = set(only)
-        unknown = sorted(str(f) for f in only if f not in INTERFACE)
+        unknown = sorted(str(f) for f in only if f not in INTERFACE and f != ROLLOUT_FUNCTION)
         if unknown:
-            raise ValueError(f"only names unknown interface functions {unknown}; known: {sorted(INTERFACE)}")
+            raise ValueError(f"only names unknown interface functions {unknown}; known: "
+                             f"{sorted(INTERFACE) + [ROLLOUT_FUNCTION]}")
+    if rollouts is not None and not isinstance(rollouts, bool):
+        raise ValueError(f"rollouts must be None, True or False, got {rollouts!r}")
     case_timeout = _check_timeout("case_timeout", case_timeout)
     start_timeout = _check_timeout("start_timeout", start_timeout)
     case_memory_mb = check_memory_mb("case_memory_mb", case_memory_mb)
@@ -254,9 +264,11 @@ def run(impl=None, vectors_dir=None, only=None, files=None, *, impl_cmd=None, in
         raise ValueError("an adapter object runs in this process; pass a spec string to run it in a child")
     else:
         runner_impl, impl_name = InProcess(impl), getattr(impl, "name", "?")
+    given = files is not None
     runner_impl.launch()  # a child starts while the vectors are read
     try:
         files = load_vectors(vectors_dir) if files is None else files
+        plan = _rollout_plan(rollouts, given, vectors_dir, only)
         runner_impl.ready()
         result = RunResult(impl_name, runner_impl.name, runner_impl.time_convention, FORMAT_VERSION,
                            sorted({str(d.get("spec_version")) for d in files}),
@@ -283,8 +295,26 @@ def run(impl=None, vectors_dir=None, only=None, files=None, *, impl_cmd=None, in
         _run_jobs(runner_impl, jobs, case_timeout)
     finally:
         runner_impl.stop()
+    rollout_vectors.run_part(plan, result, impl, impl_cmd=impl_cmd, in_process=bool(in_process),
+                             functions=runner_impl.functions, timeout=case_timeout, start_timeout=start_timeout,
+                             memory_mb=None if in_process else case_memory_mb)
     result.seconds = time.perf_counter() - t0
     return result
+
+
+def _rollout_plan(rollouts, given: bool, vectors_dir, only) -> dict:
+    """Whether and which rollout vectors the run replays ([CR-10]), decided before any case runs; VectorError
+    for rollout vectors that are present but cannot be read."""
+    if rollouts is False:
+        return rollout_vectors.skipped("left out (--no-rollouts)")
+    if only is not None and ROLLOUT_FUNCTION not in only:
+        return rollout_vectors.skipped(f"left out (--only without {ROLLOUT_FUNCTION})")
+    if rollouts is None and given:
+        return rollout_vectors.skipped("left out (the vectors were passed already read; rollouts=True runs them)")
+    try:
+        return rollout_vectors.at_the_door(vectors_dir)
+    except ValueError as exc:
+        raise VectorError(str(exc)) from None
 
 
 # ---------------------------------------------------------------- command line
@@ -315,7 +345,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--junit", type=output_file(), default=None, help="write JUnit XML to this file")
     parser.add_argument("--only", type=comma_list("value", _interface_function), default=None,
                         help="comma-separated interface functions to run (default: all): "
-                             + ", ".join(sorted(INTERFACE)))
+                             + ", ".join(sorted(INTERFACE)) + f"; {ROLLOUT_FUNCTION} for the rollout vectors")
+    parser.add_argument("--no-rollouts", action="store_true",
+                        help="leave out the rollout vectors (VECTORS/rollouts/, spec/42-rollouts.md [CR-10]), "
+                             "which load JAX to serve their field; the run says they were left out")
 
 
 def _memory_mb(text: str) -> int:
@@ -327,9 +360,9 @@ def _memory_mb(text: str) -> int:
 
 
 def _interface_function(name: str) -> str:
-    if name not in INTERFACE:
+    if name not in INTERFACE and name != ROLLOUT_FUNCTION:
         raise argparse.ArgumentTypeError(f"{name!r} is not an interface function; choose from "
-                                         f"{', '.join(sorted(INTERFACE))}")
+                                         f"{', '.join(sorted(INTERFACE) + [ROLLOUT_FUNCTION])}")
     return name
 
 
@@ -349,7 +382,8 @@ def run_from_args(args) -> int:
         res = run(args.impl, args.vectors, only, impl_cmd=impl_cmd, in_process=getattr(args, "in_process", False),
                   case_timeout=getattr(args, "case_timeout", DEFAULT_CASE_TIMEOUT),
                   start_timeout=getattr(args, "start_timeout", DEFAULT_START_TIMEOUT),
-                  case_memory_mb=getattr(args, "case_memory_mb", DEFAULT_CASE_MEMORY_MB))
+                  case_memory_mb=getattr(args, "case_memory_mb", DEFAULT_CASE_MEMORY_MB),
+                  rollouts=False if getattr(args, "no_rollouts", False) else None)
     except (AdapterError, VectorError) as exc:
         return command_error(prog, exc)
     try:
