@@ -64,7 +64,8 @@ def add_subparsers(subparsers) -> None:
     ev.add_argument("--methods", type=_methods, default=None,
                     help="comma-separated methods: naive, inference_hard, inference_soft, train_hard, train_soft, "
                          "train_soft:delay_scaled:LAM[:H_MAX], train_soft:offset:L[:H_MAX], train_soft:fixed:H, "
-                         "train_soft:hard, each train_soft optionally followed by :zeros "
+                         "train_soft:hard, each train_soft optionally followed by :zeros; a last :consistent "
+                         "selects the time-consistent solver step for naive / train_hard / train_soft "
                          "(default: the paper's main-table rows)")
     ev.add_argument("--delays", type=_delays, default=[0, 1, 2, 3, 4],
                     help="comma-separated delays (default 0,1,2,3,4)")

@@ -65,11 +65,11 @@ class EvalConfig:
         if not meths or len({m.label for m in meths}) != len(meths):
             raise ValueError(f"methods must be a non-empty sequence of distinct methods, got {self.methods!r}")
         seen: dict = {}
-        for m in meths:  # [KE-2] two spellings of one method and window (lam 2 and 2.0) are one method
-            same = seen.setdefault((m.method, m.window), m.label)
+        for m in meths:  # [KE-2] two spellings of one method, window and step (lam 2 and 2.0) are one method
+            same = seen.setdefault((m.method, m.window, m.step), m.label)
             if same != m.label:
                 raise ValueError(f"methods must be distinct methods: {same!r} and {m.label!r} are the same method "
-                                 f"and window")
+                                 f"and window, with the same solver step")
         object.__setattr__(self, "methods", meths)
         s = check_int("execute_horizon", self.execute_horizon, 1, 1 << 12)
         ds = _as_tuple("delays", self.delays, f"distinct integers in [0, {s}]")

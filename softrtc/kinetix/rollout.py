@@ -6,7 +6,9 @@ method's per-delay weight table (all zeros for ``naive``, bitwise the naive
 sampler by [S-7]); ``inference_hard`` and ``inference_soft`` use the guided
 sampler. Policy parameters, the level, the weight table, the delays and the
 PRNG keys are arguments of the compiled function, so one compile serves
-every level, delay, window and checkpoint of a family. The rollout is a
+every level, delay, window and checkpoint of a family. So is the solver
+step of the training-time family ([KE-13]): a boolean argument picks
+Algorithm 1's step or the time-consistent one ([S-10]) by ``lax.cond``. The rollout is a
 ``lax.scan`` over chunks of a batch of envs; the env axis is sharded over a
 1-D device mesh ([KE-4]).
 """
@@ -35,7 +37,7 @@ from .limits import EPISODE_STEPS_MAX, EPISODE_STEPS_MIN
 from .methods import FAMILY_SAMPLERS, MethodSpec, method_family, rollout_weight_table
 from .protocol import EPISODE_STEPS, EXECUTE_HORIZON, NUM_FLOW_STEPS
 
-__all__ = ["episode_keys", "Rollout", "make_rollout"]
+__all__ = ["episode_keys", "Rollout", "make_rollout", "rollout_sampler"]
 
 
 def episode_keys(seed: int, level: str, episodes: int) -> jax.Array:
@@ -64,12 +66,47 @@ def _level_task(template: kenv.KinetixTask, level_state) -> kenv.KinetixTask:
     return dataclasses.replace(template, level=level_state, env=env)
 
 
-def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
-    """Pure ``fn(params, level, table, keys [n], delays [n]) -> dict`` of one family ([KE-3]..[KE-6])."""
-    sampler = FAMILY_SAMPLERS[family]  # with the traced weight table of the method ([KE-3])
+def rollout_sampler(policy: FlowPolicy, family: str, s: int, T: int, table, consistent):
+    """The chunk requests of a family's rollout ([KE-3], [KE-13]): ``(first, next_chunk)``.
 
-    def fn(params, level_state, table, keys, delays):
-        chunks = FastChunks(nnx.merge(graphdef, params), sampler, s, T, weights=table, stored_transposes=False)
+    ``first(obs [n, O], keys [n])`` is the naive first chunk ([X-2]) and
+    ``next_chunk(obs, prior [n, H, A], delays [n], keys [n])`` a later one,
+    with the weight table ``[min(s, H - s) + 1, H]`` of the method. For the
+    ``"rtc"`` family the scalar boolean ``consistent`` (traced in the
+    rollout) picks the solver step ([S-10]) with ``lax.cond``: both samplers
+    are in the program, only the chosen one runs. The guided family has no
+    blended step ([S-14]) and ignores the flag, which the rollout sets False.
+    """
+    policy = _check_policy(policy)
+    if family not in FAMILY_SAMPLERS:
+        raise ValueError(f"family must be 'rtc' or 'guided', got {family!r}")
+    s = check_int("s", s, 1, policy.action_chunk_size)
+    T = check_int("T", T, 1, 1024)
+    if isinstance(consistent, bool):
+        if consistent and family != "rtc":
+            raise ValueError("consistent must be False for the 'guided' family (no blended step, [S-14])")
+    elif not (isinstance(consistent, (jax.Array, np.ndarray)) and consistent.shape == ()
+              and consistent.dtype == np.bool_):
+        raise ValueError(f"consistent must be a bool or a boolean scalar array, got {consistent!r}")
+    sampler = FAMILY_SAMPLERS[family]  # with the traced weight table of the method ([KE-3])
+    chunks = FastChunks(policy, sampler, s, T, weights=table, stored_transposes=False)
+    if family != "rtc":
+        return chunks.first, chunks.next
+    cons = FastChunks(policy, sampler, s, T, weights=table, stored_transposes=False, step="consistent")
+
+    def next_chunk(obs, prior, delays, keys):
+        return jax.lax.cond(consistent, lambda: cons.next(obs, prior, delays, keys),
+                            lambda: chunks.next(obs, prior, delays, keys))
+
+    return chunks.first, next_chunk
+
+
+def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
+    """Pure ``fn(params, level, table, consistent, keys [n], delays [n]) -> dict`` of one family
+    ([KE-3]..[KE-6], [KE-13])."""
+
+    def fn(params, level_state, table, consistent, keys, delays):
+        first_chunk, next_chunk = rollout_sampler(nnx.merge(graphdef, params), family, s, T, table, consistent)
         task = _level_task(template, level_state)
         k_reset, k_run = jnp.moveaxis(jax.vmap(jax.random.split)(keys), 1, 0)
         obs0, state0 = jax.vmap(task.reset)(k_reset)
@@ -101,13 +138,13 @@ def _build_rollout_fn(template, graphdef, family, H, A, s, T, C):
             state, obs, (seg, rew, done, solved) = execute(state, obs, seg, step_keys)
             noise_keys, _ = request_keys(c + 1)
             # After the last segment there is no request to make: its chunk would be dropped.
-            new = jax.lax.cond(c + 1 < C, lambda: chunks.next(obs, jexec.shift_prior(prev, s), delays, noise_keys),
+            new = jax.lax.cond(c + 1 < C, lambda: next_chunk(obs, jexec.shift_prior(prev, s), delays, noise_keys),
                                lambda: prev)
             return (state, obs, new, jexec.segment(prev, new, s, delays)), (seg, new, rew, done, solved)
 
         # [X-2] Request 0: the naive sampler, no prior, d = 0; its chunk executes its own tokens 0 .. s-1.
         noise_keys, _ = request_keys(jnp.int32(0))
-        first = chunks.first(obs0, noise_keys)
+        first = first_chunk(obs0, noise_keys)
         _, (segs, later, rew, done, solved) = jax.lax.scan(
             request, (state0, obs0, first, first[:, :s]), jnp.arange(C, dtype=jnp.int32))
         chunks_out = jnp.concatenate([first[None], later[:-1]])
@@ -156,7 +193,8 @@ class Rollout:
 
     Build with :func:`make_rollout`. ``rollout(policy, spec, level, keys,
     delays)`` runs ``len(keys)`` episodes (one per key, with the delay of the
-    same index) and returns host NumPy arrays: ``actions [n, C*s, A]`` (the
+    same index) with the weight table and solver step of ``spec`` ([KE-13])
+    and returns host NumPy arrays: ``actions [n, C*s, A]`` (the
     executed actions, [X-4]), ``chunks [n, C, H, A]`` (every generated
     chunk), ``length``, ``return``, ``solved``, ``ended`` (``[n]``) and
     ``delays``. ``compile_s`` is the time of the last lower-and-compile.
@@ -215,14 +253,16 @@ class Rollout:
             ds = np.concatenate([ds, np.broadcast_to(ds[:1], (pad,))])
         level_state = _level_state(self.template, level)
         table = jnp.asarray(rollout_weight_table(spec, self.H, self.s))
+        consistent = jnp.asarray(spec.step == "consistent")  # [KE-13]; False for every guided method ([S-14])
         params = nnx.state(policy)
-        return params, level_state, table, keys, jnp.asarray(ds, jnp.int32)
+        return params, level_state, table, consistent, keys, jnp.asarray(ds, jnp.int32)
 
     def _compile(self, args) -> None:
         # [KC-3]: through the program cache (skips tracing for a configuration compiled before);
         # outputs replicated, so with several processes every one gets all episodes ([KD-2]).
         rep, env_axis = self._shardings
-        self._compiled = cache.compile_program("kinetix_rollout", self._fn, args, (rep, rep, rep, env_axis, env_axis),
+        self._compiled = cache.compile_program("kinetix_rollout", self._fn, args,
+                                               (rep, rep, rep, rep, env_axis, env_axis),
                                                rep, config=self._program_config)
         self.compile_s, self.compile_source = self._compiled.seconds, self._compiled.source
 

@@ -142,7 +142,8 @@ def test_rollout_return_length_and_solved_cover_the_first_episode_only():
     table = jnp.asarray(KM.rollout_weight_table(KM.parse_method("train_hard"), Hc, s))
 
     def run(length, solved_episode):
-        out = fn(nnx.state(pol), jnp.array([length, solved_episode], jnp.int32), table, keys, delays)
+        out = fn(nnx.state(pol), jnp.array([length, solved_episode], jnp.int32), table, jnp.asarray(False), keys,
+                 delays)  # Algorithm 1's step ([KE-13])
         return {k: np.asarray(v) for k, v in jax.device_get(out).items()}
 
     # Episodes end at steps 7, 14, 21 of 24; only the second one is solved: the first episode is not.
