@@ -226,7 +226,7 @@ def verdicts(summary: dict, env: Environment, soft2_rows=(), n1_identical: bool 
         ok = all(r in summary for r in need)
         ev = "; ".join(f"L {L}: {w} {_ci(_get(summary, name[L], 'high', S), 2)}, {J} "
                        f"{_ci(_get(summary, name[L], 'high', J), 3)}"
-                       for L in range(7) if name[L] in summary)
+                       for L in range(7) if name[L] in summary) or "no row of the sweep in the results"
         why = None if ok else "the offset rows L = 0 and L = 6 were not both run"
         if ok:
             e0 = summary[name[0]]

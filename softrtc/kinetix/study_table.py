@@ -483,6 +483,7 @@ def write_plots(summary: dict, out_dir) -> list:
             ds = [d for d in e["delays"] if metric in e["scopes"].get(f"d{d}", {})]
             ax.plot(ds, [e["scopes"][f"d{d}"][metric]["mean"] for d in ds], "o-" if r == "train_hard" else ".-",
                     label=_display(r))
+        ax.set_xticks(sorted({d for e in summary.values() for d in e["delays"]}))
         ax.set_xlabel("delay d (control steps)")
         ax.set_ylabel(f"{label}, mean over levels")
         ax.legend(fontsize=6)

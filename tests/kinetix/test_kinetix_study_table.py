@@ -140,6 +140,7 @@ def test_verdicts_supported_not_supported_inconclusive(study):
     assert c3["reason"] == "`train_soft:delay_scaled:1` has 1 fine-tuning seed(s), fewer than 3"
     c4 = v["The offset sweep (clip) trades high-delay solve for smoothness (L = 6 vs L = 0)."]
     assert c4["verdict"] == "inconclusive" and c4["reason"] == "the offset rows L = 0 and L = 6 were not both run"
+    assert c4["evidence"] == "no row of the sweep in the results"
     c5 = v["Soft RTC (spec default, clip; Algorithm 1 step) has lower action delta and jerk than Train Hard RTC "
            "over all delays."]
     assert c5["verdict"] == "not supported"
