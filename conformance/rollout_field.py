@@ -33,17 +33,15 @@ def default_checkpoint() -> Path:
     return default_checkpoint_dir() / "drift" / "base.npz"
 
 
-@functools.lru_cache(maxsize=4)
-def _load(path: str):
-    """(policy, jitted velocity, jitted VJP) of one checkpoint file, loaded once per process."""
+def jitted_field(model) -> tuple:
+    """(jitted velocity, jitted VJP) of a FlowPolicy ``model`` for one observation, in float32 ([CR-3]):
+    ``v(obs [O], x [H, A], t [H])`` and ``vjp(obs, x, t, cotangent [H, A])``. Shared by the arm's and
+    Kinetix's served fields ([CR-3], [CR-13])."""
     import flax.nnx as nnx
     import jax
     import jax.numpy as jnp
 
-    from softrtc.arm.checkpoints import load_arm_checkpoint
-
-    policy = load_arm_checkpoint(path)
-    graphdef, state = nnx.split(policy.model)
+    graphdef, state = nnx.split(model)
 
     def vel(state, obs, x, t):
         return nnx.merge(graphdef, state)(obs[None], x[None], t[None])[0]
@@ -55,38 +53,22 @@ def _load(path: str):
     f32 = jnp.float32
     jv = jax.jit(lambda o, x, t: vel(state, o.astype(f32), x.astype(f32), t.astype(f32)))
     jj = jax.jit(lambda o, x, t, c: vjp(state, o.astype(f32), x.astype(f32), t.astype(f32), c.astype(f32)))
-    return policy, jv, jj
+    return jv, jj
 
 
-class ServedField:
-    """``v(obs, x, t)`` of a shipped arm checkpoint and its VJP in ``x`` ([CR-3], [F-1]'s calling form).
+@functools.lru_cache(maxsize=4)
+def _load(path: str):
+    """(policy, jitted velocity, jitted VJP) of one checkpoint file, loaded once per process."""
+    from softrtc.arm.checkpoints import load_arm_checkpoint
 
-    ``convention`` is the caller's time convention ([V-1]): under
-    ``noise_at_1`` the field is ``u(obs, x, t') = -v(obs, x, 1 - t')`` and its
-    VJP ``-(dv/dx)^T c`` at ``1 - t'``, as [CF-10] maps the vectors' field.
-    Inputs are float64 arrays (or anything NumPy reads); they are rounded to
-    float32, the network's precision, and the result comes back as float64.
-    ``calls`` counts the evaluations (velocity and VJP separately).
-    """
+    policy = load_arm_checkpoint(path)
+    return (policy, *jitted_field(policy.model))
 
-    def __init__(self, checkpoint=None, convention: str = "data_at_1"):
-        path = Path(default_checkpoint() if checkpoint is None else checkpoint)
-        if not path.is_file():
-            raise ValueError(f"checkpoint must name an arm checkpoint file (.npz), got {str(path)!r}")
-        self.checkpoint = str(path)
-        self.convention = check_choice("convention", convention, TIME_CONVENTIONS)
-        self.policy, self._v, self._vjp = _load(str(path.resolve()))
-        self.H, self.s = self.policy.H, self.policy.s
-        self.action_dim = int(self.policy.model.action_dim)
-        self.obs_dim = int(self.policy.model.obs_dim)
-        self.calls = {"velocity": 0, "vjp": 0}
 
-    def flipped(self) -> "ServedField":
-        """The same network for a caller in the other time convention ([V-1])."""
-        other = "noise_at_1" if self.convention == "data_at_1" else "data_at_1"
-        out = ServedField(self.checkpoint, other)
-        out.calls = self.calls
-        return out
+class FieldBase:
+    """A served field ``v(obs, x, t)`` and its VJP in ``x`` ([CR-3], [F-1]'s calling form), in the caller's
+    time convention ([V-1]). Subclasses set ``H``, ``s``, ``T``, ``action_dim``, ``obs_dim``, ``convention``,
+    ``calls`` and the jitted ``_v``, ``_vjp``, and implement ``flipped``."""
 
     def _inputs(self, obs, x, t):
         obs = check_array("obs", obs, shape=(self.obs_dim,))
@@ -108,6 +90,45 @@ class ServedField:
         self.calls["vjp"] += 1
         out = np.asarray(self._vjp(obs, x, t, c), np.float64)
         return -out if self.convention == "noise_at_1" else out
+
+    def _other_convention(self) -> str:
+        return "noise_at_1" if self.convention == "data_at_1" else "data_at_1"
+
+
+class ServedField(FieldBase):
+    """``v(obs, x, t)`` of a shipped arm checkpoint and its VJP in ``x`` ([CR-3], [F-1]'s calling form).
+
+    ``convention`` is the caller's time convention ([V-1]): under
+    ``noise_at_1`` the field is ``u(obs, x, t') = -v(obs, x, 1 - t')`` and its
+    VJP ``-(dv/dx)^T c`` at ``1 - t'``, as [CF-10] maps the vectors' field.
+    Inputs are float64 arrays (or anything NumPy reads); they are rounded to
+    float32, the network's precision, and the result comes back as float64.
+    ``calls`` counts the evaluations (velocity and VJP separately).
+    """
+
+    env = "arm"
+
+    def __init__(self, checkpoint=None, convention: str = "data_at_1"):
+        path = Path(default_checkpoint() if checkpoint is None else checkpoint)
+        if not path.is_file():
+            raise ValueError(f"checkpoint must name an arm checkpoint file (.npz), got {str(path)!r}")
+        self.checkpoint = str(path)
+        self.convention = check_choice("convention", convention, TIME_CONVENTIONS)
+        self.policy, self._v, self._vjp = _load(str(path.resolve()))
+        self.H, self.s, self.T = self.policy.H, self.policy.s, self.policy.T
+        self.action_dim = int(self.policy.model.action_dim)
+        self.obs_dim = int(self.policy.model.obs_dim)
+        self.calls = {"velocity": 0, "vjp": 0}
+
+    def flipped(self) -> "ServedField":
+        """The same network for a caller in the other time convention ([V-1])."""
+        out = ServedField(self.checkpoint, self._other_convention())
+        out.calls = self.calls
+        return out
+
+    def describe(self) -> dict:
+        """What a report names the served policy by ([CR-8])."""
+        return {"checkpoint": self.checkpoint.replace("\\", "/").split("softrtc/")[-1]}
 
 
 class ArmWorld:
@@ -153,6 +174,15 @@ class ArmWorld:
     @property
     def t(self) -> int:
         return int(self.env.t)
+
+    # The paired outcomes of [CR-7] on the arm.
+    metric_names = ("success", "completed", "D1", "D2", "D3", "boundary")
+
+    def metrics(self, actions: list, chunk_index: list) -> dict:
+        """The episode's outcomes of [CR-7] from the commands sent and each tick's chunk index."""
+        from .rollout_loop import episode_metrics
+
+        return episode_metrics(self, actions, chunk_index)
 
     def physical(self, action) -> np.ndarray:
         """A chunk-space action in physical units, clipped to the ranges of [A-8]."""

@@ -1,4 +1,4 @@
-"""Closed-loop rollout episodes on the arm and the per-request check against the reference ([CR-5]..[CR-7]).
+"""Closed-loop rollout episodes (arm or Kinetix) and the per-request check against the reference ([CR-5]..[CR-7]).
 
 An episode is a deterministic function of the settings, the episode index and
 the implementation's answers: request ``c`` carries the observation of tick
@@ -34,6 +34,7 @@ _SAMPLER_REQS = {"naive": ["S-2"], "train_hard": ["S-3", "W-8"], "train_soft": [
 EXEC_REQS = ["CR-2", "X-4", "R-4"]
 # [A-24] smoothness on the commanded joint targets only.
 JOINT_DIMS = slice(0, 3)
+# The arm's paired outcomes ([CR-7]); a world names its own in ``metric_names`` (Kinetix: [CR-13]).
 METRICS = ("success", "completed", "D1", "D2", "D3", "boundary")
 
 
@@ -209,7 +210,7 @@ def run_episode(answer, field, world, settings: Settings, method: str, episode: 
     ``{"chunk", "executed"}`` or raises (NotImplementedError: unsupported); ``checker`` (optional) checks
     every request against the reference and records the first divergence of the executed actions ([CR-6])."""
     ep = Episode(method, episode, env_seed(settings, episode))
-    H, s, A, T = field.H, field.s, field.action_dim, field.policy.T
+    H, s, A, T = field.H, field.s, field.action_dim, field.T
     obs = world.reset(ep.env_seed)
     prev, c = None, 0
     actions, chunk_index = [], []
@@ -242,5 +243,5 @@ def run_episode(answer, field, world, settings: Settings, method: str, episode: 
             chunk_index.append(c - 1 if j < e else c)
         prev, c = chunk, c + 1
     ep.requests, ep.steps = c, len(actions)
-    ep.metrics = episode_metrics(world, actions, chunk_index)
+    ep.metrics = world.metrics(actions, chunk_index)
     return ep

@@ -1,15 +1,17 @@
-"""Rollout vectors: the requests of real closed-loop reference episodes, replayed open loop ([CR-10]).
+"""Rollout vectors: the requests of real closed-loop reference episodes, replayed open loop ([CR-10], [CR-15]).
 
-    softrtc conformance generate --rollouts [--out DIR]     writes DIR/rollouts/ (rollouts_arm.json, index.json)
-    softrtc conformance rollout --impl X --vectors [DIR]     replays them against an implementation
+    softrtc conformance generate --rollouts [--out DIR]     writes DIR/rollouts/ (rollouts_arm.json,
+                                                            rollouts_kinetix.json, index.json)
+    softrtc conformance rollout --impl X --vectors [DIR] [--env arm|kinetix]   replays them
 
-The generator runs the reference in closed loop on the arm and records, for
-the first :data:`REQUESTS` requests of :data:`EPISODES` episodes of each method
-of :data:`METHODS`, the request's arguments and the reference's chunk and
-executed actions. Replaying gives every implementation the recorded inputs,
-so it is compared request by request without divergence compounding, on the
-served field of [CR-3] (the file names the checkpoint and its SHA-256; a
-replay with another checkpoint is refused).
+The generator runs the reference in closed loop on the arm and on a Kinetix
+level and records, for the first requests of a few episodes of each method of
+:data:`METHODS` (:data:`PLAN`), the request's arguments and the reference's
+chunk and executed actions. Replaying gives every implementation the recorded
+inputs, so it is compared request by request without divergence compounding,
+on the served field the file's header names ([CR-3], [CR-14]: the arm's
+checkpoint and its SHA-256; the Kinetix level, checkpoint or init seed and
+the policy's SHA-256); a replay that cannot serve that same field is refused.
 """
 
 from __future__ import annotations
@@ -21,6 +23,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from softrtc._files import write_atomic
+from softrtc.reference._validate import check_choice
 
 from . import SPEC_VERSION, vectors_dir
 from .results import UNSUPPORTED_CASE, CaseResult, RunResult
@@ -34,6 +39,12 @@ FILE = "rollouts_arm.json"
 METHODS = ("naive", "train_hard", "train_soft", "inference_hard", "inference_soft")
 EPISODES = 2
 REQUESTS = 20
+# One vector file per world, each self-describing (its header's env and policy, [CR-15]).
+FILES = {"arm": FILE, "kinetix": "rollouts_kinetix.json"}
+# (episodes per method, requests per episode) of each file ([CR-10], [CR-15]): a Kinetix request carries the
+# level's 679-value observation, so fewer requests keep its file under 1 MB.
+PLAN = {"arm": (EPISODES, REQUESTS), "kinetix": (2, 16)}
+SEED = 7
 FUNCTION = "rollout_chunk"
 # Requests in a row that lose the implementation's process before the remaining ones fail unrun ([CF-30]).
 MAX_LOST_IN_A_ROW = 3
@@ -61,20 +72,22 @@ def _checkpoint_rel(path: str) -> str:
     return "softrtc/arm/checkpoints/" + path.replace("\\", "/").split("softrtc/arm/checkpoints/")[-1]
 
 
-def record_cases(field, world) -> list:
-    """The cases of the rollout vectors: closed-loop reference episodes, first REQUESTS requests each."""
+def record_cases(field, world, env: str = "arm") -> list:
+    """The cases of the rollout vectors: closed-loop reference episodes, the first requests of each (PLAN)."""
     from .rollout_impls import ReferenceRollout
 
     ref = ReferenceRollout()
-    settings = Settings(METHODS, EPISODES, (0, 1, 2, 3, 4, 5), REQUESTS * field.s, seed=7)
+    episodes, requests = PLAN[env]
+    settings = Settings(METHODS, episodes, (0, 1, 2, 3, 4, 5), requests * field.s, seed=SEED)
+    first = ["CR-10"] if env == "arm" else ["CR-10", "CR-15"]
     cases = []
     for method in METHODS:
-        for i in range(EPISODES):
+        for i in range(episodes):
             def answer(c, args, method=method, i=i):
                 out = ref.rollout_chunk(field, **args)
                 reqs = chunk_requirements(method, args["prev"] is None) + [r for r in EXEC_REQS if r != "CR-2"]
-                cases.append({"id": f"CR.arm.{method}.ep{i:03d}.r{c:03d}", "function": "rollout_chunk",
-                              "requirements": ["CR-10"] + reqs, "tolerance": dict(TOL),
+                cases.append({"id": f"CR.{env}.{method}.ep{i:03d}.r{c:03d}", "function": "rollout_chunk",
+                              "requirements": first + reqs, "tolerance": dict(TOL),
                               "args": {k: _plain(args[k]) for k in ARGS},
                               "expected": {k: _plain(out[k]) for k in ("chunk", "executed")}})
                 return out
@@ -82,61 +95,148 @@ def record_cases(field, world) -> list:
     return cases
 
 
-def generate(out_dir=None, checkpoint=None) -> dict:
-    """Write ``rollouts_arm.json`` and its ``index.json`` into ``rollouts_dir(out_dir)``; {file: bytes}."""
-    from .rollout_field import ArmWorld, ServedField
+def _header(env: str, field) -> dict:
+    episodes, requests = PLAN[env]
+    head = {"format_version": ROLLOUT_VECTOR_FORMAT, "spec_version": SPEC_VERSION, "chapter": "CR",
+            "generator": "softrtc.conformance.rollout_vectors", "reference": "softrtc.reference", "env": env,
+            "episodes": episodes, "requests": requests, "methods": list(METHODS)}
+    if env == "arm":
+        head.update(title="Rollout requests of closed-loop reference episodes on the arm (spec/42-rollouts.md)",
+                    task="drift", checkpoint=_checkpoint_rel(field.checkpoint),
+                    checkpoint_sha256=hashlib.sha256(Path(field.checkpoint).read_bytes()).hexdigest())
+    else:
+        head.update(title="Rollout requests of closed-loop reference episodes on a Kinetix level "
+                          "(spec/42-rollouts.md)", seed=SEED, obs_dim=field.obs_dim, action_dim=field.action_dim,
+                    H=field.H, s=field.s, T=field.T, **field.describe())
+    return head
 
-    field = ServedField(checkpoint)
-    world = ArmWorld(field, max_steps=REQUESTS * field.s)
-    cases = record_cases(field, world)
-    digest = hashlib.sha256(Path(field.checkpoint).read_bytes()).hexdigest()
-    header = {"format_version": ROLLOUT_VECTOR_FORMAT, "spec_version": SPEC_VERSION, "chapter": "CR",
-              "title": "Rollout requests of closed-loop reference episodes on the arm (spec/42-rollouts.md)",
-              "generator": "softrtc.conformance.rollout_vectors", "reference": "softrtc.reference",
-              "env": "arm", "task": "drift", "checkpoint": _checkpoint_rel(field.checkpoint),
-              "checkpoint_sha256": digest, "episodes": EPISODES, "requests": REQUESTS, "methods": list(METHODS)}
+
+def _write_file(folder: Path, name: str, header: dict, cases: list) -> str:
     lines = ["{"] + [f"{_dumps(k)}:{_dumps(header[k])}," for k in sorted(header)] + ['"cases":[']
     lines.append(",\n".join(_dumps(c) for c in cases))
     lines.append("]}")
     text = "\n".join(lines) + "\n"
+    write_atomic(folder / name, lambda f: f.write(text.encode("ascii")), binary=True)
+    return text
+
+
+def open_env(env: str, checkpoint=None) -> tuple:
+    """``(field, world)`` the vectors of ``env`` are recorded on, cut at the plan's requests ([CR-10], [CR-15])."""
+    from .rollout import open_world
+
+    check_choice("env", env, tuple(FILES))
+    if env == "arm":
+        from .rollout_field import ServedField
+
+        return open_world("arm", checkpoint, max_steps=PLAN["arm"][1] * ServedField(checkpoint).s)
+    if checkpoint is not None:
+        raise ValueError("checkpoint serves another arm checkpoint; the Kinetix vectors serve the default policy")
+    from softrtc.kinetix.protocol import EXECUTE_HORIZON
+
+    return open_world("kinetix", max_steps=PLAN["kinetix"][1] * EXECUTE_HORIZON)
+
+
+def generate(out_dir=None, checkpoint=None, envs=tuple(FILES)) -> dict:
+    """Write the vector file of each env in ``envs`` and their ``index.json`` into ``rollouts_dir(out_dir)``;
+    returns {file: bytes}. ``checkpoint`` (arm only) serves another arm checkpoint."""
+    if isinstance(envs, str) or not envs or any(e not in FILES for e in envs):
+        raise ValueError(f"envs must be a non-empty sequence of {tuple(FILES)}, got {envs!r}")
     out = rollouts_dir(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / FILE).write_text(text, encoding="ascii")
-    index = {"format_version": ROLLOUT_VECTOR_FORMAT, "spec_version": SPEC_VERSION,
-             "files": {FILE: {"chapter": "CR", "cases": len(cases),
-                              "sha256": hashlib.sha256(text.encode("ascii")).hexdigest()}}}
+    sizes, listed = {}, {}
+    for env in FILES:
+        if env not in envs:
+            continue
+        field, world = open_env(env, checkpoint if env == "arm" else None)
+        cases = record_cases(field, world, env)
+        text = _write_file(out, FILES[env], _header(env, field), cases)
+        sizes[FILES[env]] = len(text)
+        listed[FILES[env]] = {"chapter": "CR", "env": env, "cases": len(cases),
+                              "sha256": hashlib.sha256(text.encode("ascii")).hexdigest()}
+    index = {"format_version": ROLLOUT_VECTOR_FORMAT, "spec_version": SPEC_VERSION, "files": listed}
     idx = _dumps(index) + "\n"
-    (out / "index.json").write_text(idx, encoding="ascii")
-    return {FILE: len(text), "index.json": len(idx)}
+    write_atomic(out / "index.json", lambda f: f.write(idx.encode("ascii")), binary=True)
+    sizes["index.json"] = len(idx)
+    return sizes
 
 
-def load(folder=None) -> tuple:
-    """``(header, cases)`` of the rollout vectors in ``folder`` (default the shipped ones), checked against
-    ``index.json`` (digest, case count, format) before any case is read ([CR-10], as [CF-25])."""
+def _folder(folder) -> Path:
     folder = rollouts_dir() if folder is None else Path(folder)
-    if (folder / "rollouts").is_dir() and not (folder / FILE).is_file():
+    if (folder / "rollouts").is_dir() and not (folder / "index.json").is_file():
         folder = folder / "rollouts"
+    return folder
+
+
+def listed_envs(folder=None) -> tuple:
+    """The envs whose vector files the index of ``folder`` lists, in the order of :data:`FILES`."""
+    folder = _folder(folder)
     try:
         index = parse_json((folder / "index.json").read_text(encoding="utf-8"))
-        raw = (folder / FILE).read_bytes()
     except OSError as exc:
         raise ValueError(f"cannot read the rollout vectors in {folder}: {exc}") from None
-    entry = index.get("files", {}).get(FILE) if isinstance(index, dict) else None
+    files = index.get("files") if isinstance(index, dict) else None
+    if not isinstance(files, dict):
+        raise ValueError(f"{folder / 'index.json'} has no 'files' mapping")
+    return tuple(env for env, name in FILES.items() if name in files)
+
+
+def load(folder=None, env: str = "arm") -> tuple:
+    """``(header, cases)`` of the rollout vectors of ``env`` in ``folder`` (default the shipped ones), checked
+    against ``index.json`` (digest, case count, format, env) before any case is read ([CR-10], as [CF-25])."""
+    check_choice("env", env, tuple(FILES))
+    folder = _folder(folder)
+    name = FILES[env]
+    try:
+        index = parse_json((folder / "index.json").read_text(encoding="utf-8"))
+        raw = (folder / name).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"cannot read the rollout vectors in {folder}: {exc}") from None
+    entry = index.get("files", {}).get(name) if isinstance(index, dict) else None
     if not isinstance(entry, dict) or entry.get("sha256") != hashlib.sha256(raw).hexdigest():
-        raise ValueError(f"{folder / FILE} does not match the SHA-256 listed in {folder / 'index.json'}")
+        raise ValueError(f"{folder / name} does not match the SHA-256 listed in {folder / 'index.json'}")
     doc = parse_json(raw.decode("ascii"))
     if str(doc.get("format_version", "")).split(".")[0] != ROLLOUT_VECTOR_FORMAT.split(".")[0]:
-        raise ValueError(f"{folder / FILE} has format_version {doc.get('format_version')!r}; this runner reads "
+        raise ValueError(f"{folder / name} has format_version {doc.get('format_version')!r}; this runner reads "
                          f"{ROLLOUT_VECTOR_FORMAT}")
+    if doc.get("env") != env:
+        raise ValueError(f"{folder / name} holds the vectors of env {doc.get('env')!r}, not {env!r}")
     cases = doc.get("cases")
     if not isinstance(cases, list) or len(cases) != entry.get("cases"):
-        raise ValueError(f"{folder / FILE} does not hold the {entry.get('cases')} cases index.json lists")
+        raise ValueError(f"{folder / name} does not hold the {entry.get('cases')} cases index.json lists")
     for c in cases:
         if not isinstance(c, dict) or set(c.get("args", {})) != set(ARGS) \
                 or set(c.get("expected", {})) != {"chunk", "executed"}:
-            raise ValueError(f"{folder / FILE}: case {c.get('id') if isinstance(c, dict) else c!r} lacks the "
+            raise ValueError(f"{folder / name}: case {c.get('id') if isinstance(c, dict) else c!r} lacks the "
                              f"arguments {ARGS} or the outputs chunk, executed")
     return doc, cases
+
+
+def field_for(header: dict):
+    """The served field a vector file was recorded with, rebuilt from its header ([CR-10], [CR-15]);
+    ValueError when this installation cannot serve the same one (checkpoint or policy digest differs)."""
+    if header.get("env") == "arm":
+        from .rollout_field import ServedField
+
+        field = ServedField()
+        check_checkpoint(header, field.checkpoint)
+        return field
+    from .rollout_kinetix import KinetixField
+
+    ck = header.get("checkpoint")
+    if ck is not None:
+        import softrtc
+
+        here = Path(softrtc.__file__).resolve().parent / ck
+        ck = here if here.is_file() else Path(ck)
+    try:
+        field = KinetixField(header.get("level"), ck, header.get("init_seed") if ck is None else None)
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"the Kinetix rollout vectors' policy (level {header.get('level')!r}, checkpoint {ck}, "
+                         f"init seed {header.get('init_seed')}) cannot be served: {exc}") from None
+    if field.about["policy_sha256"] != header.get("policy_sha256"):
+        raise ValueError(f"the Kinetix policy served here (SHA-256 {field.about['policy_sha256']}) is not the one "
+                         f"the rollout vectors were recorded with (SHA-256 {header.get('policy_sha256')})")
+    return field
 
 
 def _args(case: dict) -> dict:
@@ -147,20 +247,25 @@ def _args(case: dict) -> dict:
     return a
 
 
-def replay(impl=None, *, impl_cmd=None, vectors_dir=None, in_process: bool = False, timeout: float = 60.0) -> dict:
-    """Every recorded request against an implementation, open loop ([CR-10]); {"result": RunResult}."""
+def replay(impl=None, *, impl_cmd=None, vectors_dir=None, env: str | None = "arm", in_process: bool = False,
+           timeout: float = 60.0) -> dict:
+    """Every recorded request of the vector file of ``env`` (None: every file the index lists) against an
+    implementation, open loop ([CR-10], [CR-15]); {"result": RunResult}. Each file is served its own field."""
     from .rollout import open_impl
-    from .rollout_field import ServedField
 
-    header, cases = load(vectors_dir)
-    field = ServedField()
-    check_checkpoint(header, field.checkpoint)
+    envs = listed_envs(vectors_dir) if env is None else (check_choice("env", env, tuple(FILES)),)
+    if not envs:
+        raise ValueError("the rollout vectors' index lists no vector file")
+    loaded = [(e, *load(vectors_dir, e)) for e in envs]
+    fields = [field_for(header) for _, header, _ in loaded]  # every policy checked before any request
     t0 = time.perf_counter()
-    under = open_impl(impl, impl_cmd, field, in_process, timeout)
-    try:
-        out = replay_cases(under, field, cases)
-    finally:
-        under.close()
+    out, under, header = [], None, loaded[0][1]
+    for (e, header, cases), field in zip(loaded, fields):
+        under = open_impl(impl, impl_cmd, field, in_process, timeout)
+        try:
+            out += replay_cases(under, field, cases, FILES[e])
+        finally:
+            under.close()
     res = RunResult(impl if impl is not None else impl_cmd, under.name, under.time_convention,
                     str(header.get("format_version")), [str(header.get("spec_version"))], out,
                     time.perf_counter() - t0, under.isolation)
@@ -204,11 +309,11 @@ def replay_cases(under, field, cases: list, name: str = FILE) -> list:
             lost = lost + [case["id"]] if isinstance(exc, RequestLost) else []
             continue
         lost.clear()
-        out.append(_judge(case, got, checker, ep, args, time.perf_counter() - t1))
+        out.append(_judge(case, got, checker, ep, args, time.perf_counter() - t1, name))
     return out
 
 
-def _judge(case: dict, got, checker, ep, args, seconds: float) -> CaseResult:
+def _judge(case: dict, got, checker, ep, args, seconds: float, name: str = FILE) -> CaseResult:
     """One replayed request: both outputs within the case's tolerance; a failure is diagnosed ([CR-9])."""
     worst, msgs, reqs = 0.0, [], list(case["requirements"])
     try:
@@ -221,37 +326,42 @@ def _judge(case: dict, got, checker, ep, args, seconds: float) -> CaseResult:
             checker.check(ep, 0, None, args, {k: np.asarray(got[k], np.float64) for k in ("chunk", "executed")})
             bad = [c for c in checker.cases if c.status == "fail"]
             if bad:
-                reqs = ["CR-10"] + [r for c in bad for r in c.requirements if r != "CR-10"]
+                head = [r for r in case["requirements"] if r in ("CR-10", "CR-15")]
+                reqs = head + [r for c in bad for r in c.requirements if r not in head]
                 msgs = [c.message for c in bad]
-        return CaseResult(case["id"], FILE, "rollout_chunk", sorted(set(reqs), key=reqs.index), "fail", ratio,
+        return CaseResult(case["id"], name, "rollout_chunk", sorted(set(reqs), key=reqs.index), "fail", ratio,
                           "; ".join(msgs) or str(exc), seconds)
-    return CaseResult(case["id"], FILE, "rollout_chunk", reqs, "pass", worst, "", seconds)
+    return CaseResult(case["id"], name, "rollout_chunk", reqs, "pass", worst, "", seconds)
 
 
 def check_generation(out_dir=None) -> list:
-    """Differences between the shipped rollout vectors and a regeneration beyond 1e-9 (or in structure)."""
+    """Differences between the shipped rollout vectors (every file the index lists) and a regeneration
+    beyond 1e-9 (or in structure)."""
     import tempfile
 
-    _, want = load(out_dir)
-    with tempfile.TemporaryDirectory() as tmp:
-        generate(tmp)
-        _, got = load(tmp)
-    if [c["id"] for c in got] != [c["id"] for c in want]:
-        return ["the regenerated cases are not the shipped ones (ids differ)"]
+    envs = listed_envs(out_dir)
     diffs = []
-    for g, w in zip(got, want):
-        for part in ("args", "expected"):
-            for k, v in w[part].items():
-                if isinstance(v, list) and np.max(np.abs(np.asarray(g[part][k]) - np.asarray(v)), initial=0) > 1e-9:
-                    diffs.append(f"{w['id']} {part}.{k}")
+    with tempfile.TemporaryDirectory() as tmp:
+        generate(tmp, envs=envs)
+        for env in envs:
+            _, want = load(out_dir, env)
+            _, got = load(tmp, env)
+            if [c["id"] for c in got] != [c["id"] for c in want]:
+                diffs.append(f"{FILES[env]}: the regenerated cases are not the shipped ones (ids differ)")
+                continue
+            for g, w in zip(got, want):
+                for part in ("args", "expected"):
+                    for k, v in w[part].items():
+                        if isinstance(v, list) and \
+                                np.max(np.abs(np.asarray(g[part][k]) - np.asarray(v)), initial=0) > 1e-9:
+                            diffs.append(f"{w['id']} {part}.{k}")
     return diffs
 
 
 # ---------------------------------------------------------------- inside `conformance run`
 
 # What the runner needs to serve each file's field ([CR-3], [CR-14]), and the extra that installs it.
-NEEDS = {"arm": (("jax", "flax", "pymunk"), "arm")}
-FILES = {"arm": FILE}
+NEEDS = {"arm": (("jax", "flax", "pymunk"), "arm"), "kinetix": (("jax", "flax", "kinetix"), "kinetix")}
 
 
 def served_checkpoint() -> Path:
@@ -279,10 +389,12 @@ def at_the_door(vectors_dir=None) -> dict:
     if not folder.exists():
         return {"status": "skipped", "reason": f"the vector folder has no rollouts/ ({folder})",
                 "folder": str(folder)}
-    envs = ("arm",)
+    envs = listed_envs(folder)
+    if not envs:
+        raise ValueError(f"{folder / 'index.json'} lists no rollout vector file")
     files, loaded = {}, []
     for env in envs:
-        header, cases = load(folder)
+        header, cases = load(folder, env)
         entry = {"env": env, "cases": len(cases), "sha256": hashlib.sha256((folder / FILES[env]).read_bytes())
                  .hexdigest(), "status": "run", "reason": "",
                  "field": header.get("checkpoint") if env == "arm" else f"Kinetix level {header.get('level')}"}
@@ -352,10 +464,7 @@ def run_part(plan: dict, result: RunResult, impl=None, *, impl_cmd=None, in_proc
             entry = info["files"][FILES[env]]
             t0 = time.perf_counter()
             try:
-                from .rollout_field import ServedField
-
-                field = ServedField()
-                check_checkpoint(header, field.checkpoint)
+                field = field_for(header)
             except (ValueError, ImportError) as exc:
                 entry.update(status="skipped", reason=f"its field cannot be served here: {str(exc)[:300]}")
                 continue
@@ -369,4 +478,5 @@ def run_part(plan: dict, result: RunResult, impl=None, *, impl_cmd=None, in_proc
         info.update(status="skipped", reason="; ".join(sorted({e["reason"] for e in info["files"].values()})))
 
 
-__all__ = ["generate", "load", "replay", "rollouts_dir", "check_generation", "at_the_door", "run_part"]
+__all__ = ["generate", "load", "replay", "rollouts_dir", "check_generation", "at_the_door", "run_part",
+           "listed_envs", "field_for", "FILES"]

@@ -80,12 +80,15 @@ def test_request_inputs_are_seeded_and_hold_early_and_late_arrivals():
 
 
 def test_settings_and_env_are_checked():
-    """CR-5, CR-12 Settings reject bad values; Kinetix is refused with an error, not run."""
+    """CR-5, CR-13 Settings reject bad values; an unknown env, or a Kinetix option with the arm, is refused
+    with an error naming it before anything loads."""
     for bad in (dict(methods=()), dict(methods=("fast",)), dict(episodes=0), dict(delays=(6,)), dict(max_steps=0)):
         with pytest.raises(ValueError):
             Settings(**bad)
-    with pytest.raises(ValueError, match="kinetix"):
-        rollout.run("torch", env="kinetix", in_process=True)
+    with pytest.raises(ValueError, match="env must be one of"):
+        rollout.run("torch", env="mujoco", in_process=True)
+    with pytest.raises(ValueError, match="init_seed is for env 'kinetix' only"):
+        rollout.run("torch", init_seed=3, in_process=True)
 
 
 def test_served_field_conventions_and_vjp(field):
