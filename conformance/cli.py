@@ -34,8 +34,9 @@ def _fill(conf: argparse.ArgumentParser) -> None:
                                           "write it, --check it, or print its README --summary")
     report.add_arguments(rep_p)
     rep_p.set_defaults(func=report.run_from_args)
-    roll_p = sub.add_parser("rollout", help="closed-loop rollouts on the arm or Kinetix: an implementation makes every chunk, "
-                                            "checked request by request against the reference, or --vectors")
+    roll_p = sub.add_parser("rollout", help="closed-loop rollouts on the arm or Kinetix: an implementation makes "
+                                            "every chunk, checked request by request against the reference, or "
+                                            "--vectors")
     rollout.add_arguments(roll_p)
     roll_p.set_defaults(func=rollout.run_from_args)
 
