@@ -200,7 +200,7 @@ def test_traceback_switch_reraises_in_every_command(argv, exc, monkeypatch):
     (["conformance"], "run, generate, report, rollout"),
     (["bench"], "runtime, vjp, table, torch"),
     (["arm"], "train, study, expert, mechanism, experiment, screen, report, torch"),
-    (["kinetix"], "eval, finetune, bench, levels, train-expert, generate-data, train-bc, screen"),
+    (["kinetix"], "eval, finetune, bench, levels, report, train-expert, generate-data, train-bc, screen"),
 ])
 def test_a_command_group_alone_is_a_usage_error(argv, names, capsys):
     """N-11: `softrtc` without a command, and each command group without its subcommand, is a usage error as

@@ -111,8 +111,9 @@ def test_served_field_conventions_and_vjp(field):
 
 @pytest.mark.parametrize("impl", ["jax", "torch", "torch-flipped"])
 def test_libraries_pass_in_closed_loop(impl):
-    """CR-1, CR-5, CR-11, X-3, X-4, S-6, G-3 The JAX twin and the PyTorch library (both conventions) make every
-    chunk of short episodes of all five methods within a tenth of the tolerance, and the paired outcomes
+    """CR-1, CR-5, CR-11, CR-12, X-3, X-4, S-6, G-3 The JAX twin and the PyTorch library (both conventions) make
+    every chunk of short episodes of all five methods within a tenth of the tolerance (the suite's short check of
+    [CR-12]: one episode per method and implementation), and the paired outcomes
     against the reference's episodes are reported per method."""
     out = rollout.run(impl, settings=Settings(ALL, 1, (1, 2, 3, 4, 5), 30), in_process=True)
     res = out["result"]
