@@ -28,11 +28,12 @@ from softrtc.reference._validate import check_choice, check_int
 
 from .rollout_field import TIME_CONVENTIONS, FieldBase, jitted_field
 
-# [CR-14] A policy checkpoint shipped under softrtc/kinetix/checkpoints/ (a `<level>.npz` file name) becomes the
-# default served policy, and its level the default level, by naming it here; with None the default is a fresh
-# benchmark-architecture policy from DEFAULT_INIT_SEED on FRESH_LEVEL.
-SHIPPED_CHECKPOINT: str | None = None
-# [CR-13] the default level when no checkpoint is shipped (why this one: spec/42-rollouts.md).
+# [CR-14] The policy checkpoint shipped under softrtc/kinetix/checkpoints/ (a `<level>.npz` file name) that is the
+# default served policy, its level the default level: the base (behaviour-cloned) policy of the Kinetix study's
+# level ([KS-10]). With None the default would be a fresh benchmark-architecture policy from DEFAULT_INIT_SEED on
+# FRESH_LEVEL.
+SHIPPED_CHECKPOINT: str | None = "m_h0_unicycle.npz"
+# [CR-13] the default level of a fresh policy, served when no checkpoint is shipped (spec/42-rollouts.md).
 FRESH_LEVEL = "s_h4_thrust_aim"
 # [CR-14] the init seed of the fresh policy (the seed `softrtc kinetix eval` uses without --policy-dir).
 DEFAULT_INIT_SEED = 0

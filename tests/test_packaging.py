@@ -48,7 +48,7 @@ def dists(tmp_path_factory):
 def test_wheel_holds_the_three_packages_and_their_data(dists):
     """N-13: one distribution; the reference and the conformance suite install as softrtc.reference and
     softrtc.conformance (nothing as a top-level ``reference`` or ``conformance``), with the vectors and the
-    arm checkpoints as package data."""
+    arm and Kinetix checkpoints as package data."""
     wheel, sdist = dists
     names = zipfile.ZipFile(wheel).namelist()
     tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
@@ -58,6 +58,7 @@ def test_wheel_holds_the_three_packages_and_their_data(dists):
         assert f"softrtc/conformance/vectors/{v}" in names
     for ck in ("base", "train_hard", "train_soft", "drift/base"):
         assert f"softrtc/arm/checkpoints/{ck}.npz" in names
+    assert "softrtc/kinetix/checkpoints/m_h0_unicycle.npz" in names  # the served Kinetix base ([CR-14])
     for module in ("reference/weights.py", "conformance/runner.py", "reference_cli.py", "cli.py"):
         assert f"softrtc/{module}" in names
     assert not any(n.startswith("softrtc/reference/cli") for n in names)

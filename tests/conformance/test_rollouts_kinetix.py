@@ -33,23 +33,32 @@ def kinetix():
 
 
 def test_served_policy_and_world_sizes(kinetix):
-    """CR-13, CR-14, K-5, KE-1, CR-3 The default world is s_h4_thrust_aim padded to the benchmark's sizes; the
-    served field is a fresh benchmark-architecture policy from init seed 0 with the protocol's H = 8, s = 4,
-    T = 5 and A = 6 on 679 float32 observation values; its VJP agrees with central differences of the velocity."""
+    """CR-13, CR-14, K-5, KE-1, KE-11, CR-3 The default world is m_h0_unicycle padded to the benchmark's sizes;
+    the served field is the shipped base checkpoint of that level (815,110 parameters, no training method),
+    named by its file and both digests, with the protocol's H = 8, s = 4, T = 5 and A = 6 on 679 float32
+    observation values; `init_seed` serves a fresh policy instead; the VJP agrees with central differences."""
     import flax.nnx as nnx
+    import jax
 
-    from softrtc.conformance.rollout_kinetix import policy_digest
+    from softrtc.conformance.rollout_kinetix import checkpoints_dir, load_policy, policy_digest
+    from softrtc.jax.checkpoint import load_checkpoint
     from softrtc.jax.policy import FlowPolicy, PolicyConfig
     from softrtc.kinetix import env as kenv
 
     field, world = kinetix
     assert (field.level, field.H, field.s, field.T, field.action_dim, field.obs_dim) == \
-        ("s_h4_thrust_aim", 8, 4, 5, 6, 679) == ("s_h4_thrust_aim", 8, 4, 5, kenv.ACTION_DIM, kenv.OBS_DIM)
+        ("m_h0_unicycle", 8, 4, 5, 6, 679) == ("m_h0_unicycle", 8, 4, 5, kenv.ACTION_DIM, kenv.OBS_DIM)
+    path = checkpoints_dir() / "m_h0_unicycle.npz"
+    shipped, meta = load_checkpoint(path)
+    assert meta["level"] == "m_h0_unicycle" and "method" not in meta and field.about["role"] == "base"
+    assert sum(np.size(v) for v in jax.tree_util.tree_leaves(nnx.to_pure_dict(nnx.state(shipped)))) == 815_110
+    assert field.describe() == {"level": "m_h0_unicycle", "checkpoint": "kinetix/checkpoints/m_h0_unicycle.npz",
+                                "checkpoint_sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+                                "init_seed": None, "policy_sha256": policy_digest(shipped)}
     fresh = FlowPolicy(obs_dim=679, action_dim=6, config=PolicyConfig(), rngs=nnx.Rngs(0))
-    other = FlowPolicy(obs_dim=679, action_dim=6, config=PolicyConfig(), rngs=nnx.Rngs(1))
-    assert field.describe() == {"level": "s_h4_thrust_aim", "checkpoint": None, "checkpoint_sha256": None,
-                                "init_seed": 0, "policy_sha256": policy_digest(fresh)}
-    assert policy_digest(other) != policy_digest(fresh)
+    _, about = load_policy("m_h0_unicycle", init_seed=0)
+    assert about["init_seed"] == 0 and about["checkpoint"] is None
+    assert about["policy_sha256"] == policy_digest(fresh) != policy_digest(shipped)
     obs = world.reset(0)
     assert obs.shape == (679,) and np.array_equal(obs.astype(np.float32).astype(np.float64), obs)
     rng = np.random.default_rng(0)
@@ -81,7 +90,8 @@ def test_world_keys_follow_the_kinetix_evaluation(kinetix):
 
 
 def test_reference_passes_a_short_closed_loop_check(kinetix):
-    """CR-1, CR-2, CR-5, CR-7, CR-13 The reference makes every chunk of one short episode per method: every
+    """CR-1, CR-2, CR-5, CR-7, CR-12, CR-13 The reference makes every chunk of one short episode (at most 16
+    ticks, the scope of the tests) per method: every
     request passes, each episode makes ceil(steps / s) requests, the implementation sees the level's observation
     and chunk sizes, and its paired outcomes against the reference's own episodes (the same keys, noise and
     delays) differ by exactly 0."""
@@ -113,33 +123,40 @@ def test_reference_passes_a_short_closed_loop_check(kinetix):
     assert max(d for *_, d, _ in seen) == 4  # delays 5 capped at min(s, H - s) = 4 ([CR-5])
     for method, p in out["paired"].items():
         assert all(p[m]["diff"] in (0.0, None) for m in out["metrics"]), (method, p)
-    assert out["policy"]["level"] == "s_h4_thrust_aim" and res.cases[0].id.startswith("CR.kinetix.")
+    assert out["policy"]["level"] == "m_h0_unicycle" and res.cases[0].id.startswith("CR.kinetix.")
 
 
 def test_mutant_fails_with_its_diagnosis(kinetix):
-    """CR-9, CR-11, X-3, CR-13 The prior-shift mutant fails every blended request of a Kinetix episode, each
-    diagnosed [X-3]; its first (naive) request passes."""
+    """CR-9, CR-11, X-3, CR-13 The prior-shift mutant fails the chunk of every blended request of a Kinetix
+    episode, each diagnosed [X-3]; an executed case that fails is blamed on its chunk (executed as [X-4] says
+    from the wrong chunk); its first (naive) request passes."""
     out = rollout.run("mutant-prior-shift", env="kinetix", settings=Settings(("train_hard",), 1, (1, 2, 3), 16),
                       in_process=True)
     res = out["result"]
     failed = [c for c in res.cases if c.status == "fail"]
-    assert not res.ok and failed and all(c.id.endswith(".chunk") for c in failed)
-    assert all(c.requirements == ["CR-2", "X-3"] and "diagnosis [X-3]" in c.message for c in failed)
-    assert {c.id for c in failed} == {f"CR.kinetix.train_hard.ep000.r{c:03d}.chunk"
+    chunks = [c for c in failed if c.id.endswith(".chunk")]
+    assert not res.ok and chunks and all(c.requirements == ["CR-2", "X-3"] and "diagnosis [X-3]" in c.message
+                                         for c in chunks)
+    assert {c.id for c in chunks} == {f"CR.kinetix.train_hard.ep000.r{c:03d}.chunk"
                                       for c in range(1, out["episodes"][0].requests)}
+    for c in failed:
+        if c.id.endswith(".executed"):
+            assert c.id.replace(".executed", ".chunk") in {k.id for k in chunks}
+            assert c.requirements == ["CR-2", "X-3"] and "the chunk is what differs" in c.message
 
 
 def test_kinetix_vectors_content(kinetix):
-    """CR-15, CR-10, CF-25 The shipped Kinetix vectors name their env, level and policy (init seed 0 and the
-    served policy's SHA-256), hold the first 16 requests of 2 episodes of each method (fewer where the level
+    """CR-15, CR-10, CF-25 The shipped Kinetix vectors name their env, level and policy (the shipped checkpoint,
+    its file's and the served policy's SHA-256), hold the first 16 requests of 2 episodes of each method (fewer where the level
     ends first), every array of the level's sizes and the noise, delays and arrivals of [CR-5] for seed 7, in
     under 1 MB; the index lists both files."""
     field, _ = kinetix
     header, cases = rollout_vectors.load(env="kinetix")
+    assert header["checkpoint_sha256"] == field.describe()["checkpoint_sha256"]
     assert {k: header[k] for k in ("env", "level", "init_seed", "checkpoint", "policy_sha256", "H", "s", "T",
                                    "obs_dim", "action_dim", "seed")} == \
-        {"env": "kinetix", "level": "s_h4_thrust_aim", "init_seed": 0, "checkpoint": None,
-         "policy_sha256": field.describe()["policy_sha256"], "H": 8, "s": 4, "T": 5, "obs_dim": 679,
+        {"env": "kinetix", "level": "m_h0_unicycle", "init_seed": None,
+         "checkpoint": "kinetix/checkpoints/m_h0_unicycle.npz", "policy_sha256": field.describe()["policy_sha256"], "H": 8, "s": 4, "T": 5, "obs_dim": 679,
          "action_dim": 6, "seed": 7}
     assert rollout_vectors.listed_envs() == ("arm", "kinetix")
     folder = rollout_vectors.rollouts_dir()
@@ -157,7 +174,7 @@ def test_kinetix_vectors_content(kinetix):
         assert np.array_equal(np.asarray(a["noise"]), noise) and (a["d"], a["arrival"]) == (d, arrival)
     assert set(per) == {(m, f"ep{i:03d}") for m in ALL for i in range(2)}
     assert all(v == list(range(len(v))) and 1 <= len(v) <= 16 for v in per.values())
-    assert max(len(v) for v in per.values()) == 16
+    assert sum(len(v) for v in per.values()) == len(cases) == 96  # every episode ends with the level ([CR-15])
 
 
 def test_vectors_replay_for_the_reference_and_the_js_port(kinetix, tmp_path):
@@ -173,7 +190,9 @@ def test_vectors_replay_for_the_reference_and_the_js_port(kinetix, tmp_path):
     bad = tmp_path / "rollouts"
     bad.mkdir()
     text = (rollout_vectors.rollouts_dir() / "rollouts_kinetix.json").read_text()
-    text = text.replace('"init_seed":0,', '"init_seed":1,', 1)
+    # the header names a fresh policy (init seed 1) instead of the shipped checkpoint
+    text = text.replace('"checkpoint":"kinetix/checkpoints/m_h0_unicycle.npz"', '"checkpoint":null', 1)
+    text = text.replace('"init_seed":null', '"init_seed":1', 1)
     (bad / "rollouts_kinetix.json").write_text(text)
     index = {"format_version": "1.0", "files": {"rollouts_kinetix.json": {
         "cases": n, "env": "kinetix", "sha256": hashlib.sha256(text.encode()).hexdigest()}}}
