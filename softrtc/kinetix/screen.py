@@ -9,6 +9,9 @@ restarted screen continues where it stopped ([KS-6]):
    curve CSV and PNG, resumable by itself, [KS-3]);
 3. ``delays.json``: the final expert's solve rate when it acts on delayed
    observations, at each delay of the screen ([KS-4]);
+
+   2 and 3 are skipped for a level that a constant action already drops:
+   no expert could keep it ([KS-5], [KS-6]).
 4. ``screen.json``: the verdict, kept or dropped, with every reason ([KS-5]).
 
 :func:`screen_levels` runs them for several levels and writes the table of
@@ -245,14 +248,20 @@ def delayed_expert_outcomes(task, params, keys, delays, act: Callable = expert_m
     return {k: np.asarray(v) for k, v in jax.device_get(fn(params, keys, jnp.asarray(delays))).items()}
 
 
-def screen_verdict(baselines: dict, delays: dict, config: ScreenConfig) -> dict:
+def screen_verdict(baselines: dict, delays: dict | None, config: ScreenConfig) -> dict:
     """``{"kept": bool, "reasons": [...]}`` from the measurements ([KS-5]); every failed rule is a reason,
-    and a kept level's one reason says what it passed."""
+    and a kept level's one reason says what it passed. ``delays`` is ``None`` for a level the constant-action
+    rule drops before its expert is trained ([KS-6]); then that rule is the one reason."""
     reasons = []
     best = max(baselines["constant"], key=lambda r: r["solved"])
     if best["solved"] >= config.const_threshold:
         reasons.append(f"a constant action solves it: {best['action']} solves {best['solved']:.2f} "
                        f">= {config.const_threshold}")
+    if delays is None:
+        if not reasons:
+            raise ValueError("delays must be the delay measurements of the expert unless a constant action "
+                             "drops the level, got None")
+        return {"kept": False, "reasons": reasons}
     rates = {int(r["delay"]): r["solved"] for r in delays["rows"]}
     d0, dmax = config.delays[0], config.delays[-1]
     if rates[d0] < config.expert_threshold:
@@ -265,6 +274,10 @@ def screen_verdict(baselines: dict, delays: dict, config: ScreenConfig) -> dict:
         return {"kept": False, "reasons": reasons}
     return {"kept": True, "reasons": [f"no constant action solves it (best {best['solved']:.2f}), the expert solves "
                                       f"{rates[d0]:.2f} at d = {d0} and {rates[dmax]:.2f} at d = {dmax}"]}
+
+
+def _constant_drops(baselines: dict, config: ScreenConfig) -> bool:
+    return max(r["solved"] for r in baselines["constant"]) >= config.const_threshold
 
 
 def _stage(path: Path, meta: dict, compute: Callable[[], dict]) -> tuple[dict, bool]:
@@ -323,6 +336,18 @@ def screen_level(level: str, out: str | Path, config: ScreenConfig, *, levels_di
     base, cached = _stage(folder / "baselines.json", base_meta, baselines)
     log(f"{level}: constant actions best solve {max(r['solved'] for r in base['constant']):.2f}, random "
         f"{base['random']['solved']:.2f}" + (" (read back)" if cached else f" ({base['wall_s']:.0f} s)"))
+    if _constant_drops(base, config):
+        # [KS-5]'s first rule already drops the level: no expert can keep it, so none is trained ([KS-6]).
+        verdict = screen_verdict(base, None, config)
+        log(f"{level}: dropped by a constant action; no PPO run and no delay measurement")
+        res = {"level": level, "kept": False, "reasons": verdict["reasons"],
+               "constant_best": max(base["constant"], key=lambda r: r["solved"]),
+               "constant_count": len(base["constant"]), "random_solved": base["random"]["solved"],
+               "ppo_env_steps": 0, "ppo_wall_s": 0.0, "ppo_curve": [], "expert_by_delay": None,
+               "wall_s": {"baselines": base["wall_s"], "ppo": 0.0, "delays": 0.0},
+               "env_steps": {"baselines": base["env_steps"], "ppo": 0, "delays": 0}, "meta": meta}
+        write_json(folder / "screen.json", res)
+        return res
     t0 = time.perf_counter()
     ppo = train_expert(level, folder / "ppo", updates=config.ppo_updates, seed=config.seed, config=config.ppo,
                        log_interval=PPO_BLOCK, levels_dir=levels_dir, progress=progress)
@@ -376,14 +401,17 @@ def format_screen(results: list[dict], config: ScreenConfig) -> str:
     lines = [f"# Kinetix level screen", "",
              f"Rules ([KS-5]): kept when no constant action solves >= {config.const_threshold}, the expert solves "
              f">= {config.expert_threshold} at d = 0, and its solve rate falls by >= {config.min_drop} from d = 0 "
-             f"to d = {ds[-1]}. {config.episodes} episodes per row; PPO {config.ppo_steps} env steps requested "
+             f"to d = {ds[-1]}; a level a constant action solves gets no PPO run (-). {config.episodes} episodes per row; PPO {config.ppo_steps} env steps requested "
              f"({config.ppo.num_envs} envs x {config.ppo.num_steps} steps per iteration), seed {config.seed}.", "",
              head, "|" + "---|" * (6 + len(ds))]
     for r in results:
-        by = {int(x["delay"]): x["solved"] for x in r["expert_by_delay"]}
+        if r["expert_by_delay"] is None:  # dropped by a constant action before PPO ([KS-6])
+            ppo, expert = "- | -", ["-"] * len(ds)
+        else:
+            by = {int(x["delay"]): x["solved"] for x in r["expert_by_delay"]}
+            ppo, expert = f"{r['ppo_env_steps']} | {r['ppo_wall_s'] / 60:.1f}", [f"{by[d]:.2f}" for d in ds]
         lines.append(f"| {r['level']} | {'yes' if r['kept'] else 'no'} | {r['constant_best']['solved']:.2f} | "
-                     f"{r['random_solved']:.2f} | {r['ppo_env_steps']} | {r['ppo_wall_s'] / 60:.1f} | "
-                     + " | ".join(f"{by[d]:.2f}" for d in ds) + " |")
+                     f"{r['random_solved']:.2f} | {ppo} | " + " | ".join(expert) + " |")
     lines += ["", "## Why", ""]
     for r in results:
         lines.append(f"- **{r['level']}** ({'kept' if r['kept'] else 'dropped'}): " + "; ".join(r["reasons"]) + ".")

@@ -133,6 +133,12 @@ def test_verdict_rules_and_reasons():
     assert v["reasons"][2].startswith("its solve rate does not fall with delay: 0.79 at d = 0, 0.60 at d = 4")
     # A fall of 0.25 >= 0.2 with the other rules met keeps the level.
     assert ks.screen_verdict(_base(0.0), _delays(0.9, 0.9, 0.8, 0.65), cfg)["kept"]
+    # KS-6: no expert measured is fine only when a constant action drops the level.
+    v = ks.screen_verdict(_base(0.5), None, cfg)
+    assert not v["kept"] and v["reasons"] == ["a constant action solves it: [1.0, 0.0, 0.0, 0.0, 0.0, 0.0] "
+                                              "solves 0.50 >= 0.5"]
+    with pytest.raises(ValueError, match="^delays must be the delay measurements"):
+        ks.screen_verdict(_base(0.49), None, cfg)
 
 
 def test_screen_config_checks_and_ppo_iterations():
@@ -160,6 +166,10 @@ def test_screen_table_lists_every_level_with_reasons():
     text = ks.format_screen([r], cfg)
     assert "| m_h5_angry_birds | no | 0.25 | 0.12 | 81920 | 8.5 | 0.50 | 0.25 |" in text
     assert "- **m_h5_angry_birds** (dropped): the expert solves 0.50 < 0.8 at d = 0." in text
+    # A level dropped by a constant action before PPO: dashes, not numbers, where nothing was measured.
+    r2 = dict(r, level="m_arm_up", constant_best={"solved": 1.0}, random_solved=0.0, ppo_env_steps=0,
+              ppo_wall_s=0.0, expert_by_delay=None)
+    assert "| m_arm_up | no | 1.00 | 0.00 | - | - | - | - |" in ks.format_screen([r, r2], cfg)
 
 
 @pytest.mark.slow
@@ -195,6 +205,23 @@ def test_screen_command_end_to_end_and_resume(tmp_path, capsys, restore_cache):
     assert "baselines.json from another screen configuration" in capsys.readouterr().err
 
 
+@pytest.mark.slow
+def test_screen_stops_at_a_constant_action_that_solves_the_level(tmp_path, restore_cache):
+    """KS-5, KS-6: m_h5_angry_birds, which the half-speed motor solves open loop, is dropped after its
+    baselines: no PPO folder, no delays stage, a screen.json and a row with dashes for what was not run."""
+    from softrtc.cli import main
+
+    out = tmp_path / "screen"
+    assert main(["kinetix", "screen", "--levels", "m_h5_angry_birds@own", "--out", str(out), "--episodes", "2",
+                 "--delays", "0,2", "--no-progress", "--no-compile-cache"]) == 0
+    level = out / "m_h5_angry_birds@own"
+    res = json.loads((level / "screen.json").read_text())
+    assert not res["kept"] and res["expert_by_delay"] is None and res["ppo_env_steps"] == 0
+    assert res["reasons"][0].startswith("a constant action solves it: [0.0, 0.5, 0.0, 0.0, 0.0, 0.0]")
+    assert not (level / "ppo").exists() and not (level / "delays.json").exists()
+    assert "| m_h5_angry_birds@own | no | 1.00 |" in (out / "screen.md").read_text()
+
+
 def test_committed_m_h5_baselines_drop_the_level():
     """KS-8, KS-2, KS-5: the committed baselines of m_h5_angry_birds: one used entry (motor 1), 5 constant
     actions of 64 episodes, the half-speed motor solving all 64 and random actions 4 of 64; with them the
@@ -225,6 +252,10 @@ def test_committed_screen_report_is_its_results():
     assert (d / "screen.md").read_text() == ks.format_screen(res["levels"], config)
     for r in res["levels"]:
         base = json.loads((d / r["level"] / "baselines.json").read_text())
-        delays = json.loads((d / r["level"] / "delays.json").read_text())
+        if r["expert_by_delay"] is None:  # dropped by a constant action: no PPO, no delays stage (KS-6)
+            assert r["ppo_env_steps"] == 0 and not (d / r["level"] / "delays.json").exists()
+            delays = None
+        else:
+            delays = json.loads((d / r["level"] / "delays.json").read_text())
         v = ks.screen_verdict(base, delays, config)
         assert (v["kept"], v["reasons"]) == (r["kept"], r["reasons"])
