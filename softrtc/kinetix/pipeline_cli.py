@@ -136,6 +136,9 @@ def add_pipeline_subparsers(sub) -> None:
                     help="episodes per constant action, for random actions and per delay (default 64)")
     sc.add_argument("--delays", type=comma_list("value", int_in("each delay", 0, 64)), default=[0, 1, 2, 4],
                     help="delays of the expert, increasing from 0 (default 0,1,2,4)")
+    sc.add_argument("--hold", type=int_in("value", 1, 64), default=4,
+                    help="steps the expert's delayed input is held, the study's execution horizon s (default 4; "
+                         "1: observation delay alone)")
     sc.add_argument("--const-threshold", type=real_in("value", 0.0, 1.0), default=0.5,
                     help="a constant action solving at least this rate drops the level (default 0.5)")
     sc.add_argument("--expert-threshold", type=real_in("value", 0.0, 1.0), default=0.8,
@@ -230,7 +233,8 @@ def _screen(args) -> int:
         ppo = PPOConfig(num_envs=args.ppo_envs, num_steps=args.ppo_num_steps, num_minibatches=args.ppo_minibatches)
         config = ScreenConfig(ppo_steps=args.ppo_steps, episodes=args.episodes, delays=tuple(args.delays),
                               seed=args.seed, const_threshold=args.const_threshold,
-                              expert_threshold=args.expert_threshold, min_drop=args.min_drop, ppo=ppo)
+                              expert_threshold=args.expert_threshold, min_drop=args.min_drop, ppo=ppo,
+                              hold=args.hold)
         results = screen_levels(levels, args.out, config, levels_dir=args.levels_dir, progress=not args.no_progress)
         for r in results:
             print(f"{r['level']}: {'kept' if r['kept'] else 'dropped'}: " + "; ".join(r["reasons"]))

@@ -73,6 +73,7 @@ class ScreenConfig:
     expert_threshold: float = 0.8
     min_drop: float = 0.2
     ppo: PPOConfig = SCREEN_PPO
+    hold: int = 4  # [KS-4] steps the expert's input is held: the study's execution horizon s
 
     def __post_init__(self):
         check_int("ppo_steps", self.ppo_steps, 1, 1 << 40)
@@ -91,6 +92,19 @@ class ScreenConfig:
         _check_rate("min_drop", self.min_drop)
         if not isinstance(self.ppo, PPOConfig):
             raise ValueError(f"ppo must be a PPOConfig, got {type(self.ppo).__name__}")
+        check_int("hold", self.hold, 1, 64)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ScreenConfig":
+        """The configuration of a ``screen.json``; one without ``hold`` was screened with ``hold = 1`` ([KS-6])."""
+        if not isinstance(d, dict):
+            raise ValueError(f"screen config must be a JSON object, got {type(d).__name__}")
+        d = dict(d)
+        ppo = d.pop("ppo", None)
+        if not isinstance(ppo, dict):
+            raise ValueError(f"screen config's ppo must be a JSON object, got {ppo!r}")
+        d.setdefault("hold", 1)
+        return cls(**d, ppo=PPOConfig(**ppo))
 
     @property
     def ppo_updates(self) -> int:
@@ -98,8 +112,11 @@ class ScreenConfig:
         return -(-self.ppo_steps // self.ppo.batch_size)
 
     def to_dict(self) -> dict:
+        """JSON form; ``hold = 1`` is left out, as in screens written before the option existed ([KS-6])."""
         d = dataclasses.asdict(self)
         d["delays"] = list(self.delays)
+        if self.hold == 1:
+            del d["hold"]
         return d
 
 
@@ -199,31 +216,33 @@ def expert_mode(params, x):
     return kexp.squash(kexp.actor_mean_std(params, x)[0])
 
 
-def _delay_program(task, max_delay: int, act: Callable = expert_mode):
+def _delay_program(task, max_delay: int, act: Callable = expert_mode, hold: int = 1):
     """Jitted ``fn(params, keys [B], delays [B]) -> outcomes`` of the expert acting on delayed inputs ([KS-4]).
 
-    Each env keeps its last ``max_delay + 1`` expert inputs ([KP-1]), newest first; the action executed
-    at step ``t`` is ``act(params, input of step t - d)`` (default the expert's mode). At a reset every
-    slot holds the reset input, so the first ``d`` steps of an episode act on it.
+    Each env keeps its last ``max_delay + hold`` expert inputs ([KP-1]), newest first; the action executed
+    at step ``t`` is ``act(params, input of step c - d)``, where ``c = t - (t mod hold)`` is the step at
+    which the current block of ``hold`` steps began (``hold = 1``: ``c = t``). At a reset every slot holds
+    the reset input, so the first ``d`` steps of an episode act on it.
     """
-    D = max_delay + 1
+    D = max_delay + hold
 
     def init_extra(obs):
         hist, prev = kexp.history_reset(obs)
         x = kexp.expert_input(hist, prev)
-        return hist, prev, jnp.repeat(x[:, None, :], D, axis=1)
+        return hist, prev, jnp.repeat(x[:, None, :], D, axis=1), jnp.zeros(x.shape[0], jnp.int32)
 
     def step_fn(k_act, ex, extra):
         params, delays = extra
-        hist, prev, buf = ex
-        x_del = jnp.take_along_axis(buf, delays[:, None, None], axis=1)[:, 0]
+        hist, prev, buf, t = ex
+        x_del = jnp.take_along_axis(buf, (delays + t % hold)[:, None, None], axis=1)[:, 0]
         action = act(params, x_del)
 
         def after(obs, action, done):
             h, p = kexp.history_step(hist, prev, obs, action, done)
             x = kexp.expert_input(h, p)
             rolled = jnp.concatenate([x[:, None, :], buf[:, :-1]], axis=1)
-            return h, p, jnp.where(done[:, None, None], jnp.repeat(x[:, None, :], D, axis=1), rolled)
+            return (h, p, jnp.where(done[:, None, None], jnp.repeat(x[:, None, :], D, axis=1), rolled),
+                    jnp.where(done, 0, t + 1))
 
         return action, after
 
@@ -233,9 +252,9 @@ def _delay_program(task, max_delay: int, act: Callable = expert_mode):
     return jax.jit(fn)
 
 
-def delayed_expert_outcomes(task, params, keys, delays, act: Callable = expert_mode) -> dict:
-    """Per env, the first episode of ``act`` (default the expert's mode) at its delay ([KS-4]); one call
-    of ``len(keys)`` envs."""
+def delayed_expert_outcomes(task, params, keys, delays, act: Callable = expert_mode, hold: int = 1) -> dict:
+    """Per env, the first episode of ``act`` (default the expert's mode) at its delay, its input held for
+    ``hold`` steps ([KS-4]); one call of ``len(keys)`` envs."""
     delays = np.asarray(delays)
     if delays.ndim != 1 or delays.size < 1 or not np.issubdtype(delays.dtype, np.integer) or delays.min() < 0 \
             or delays.max() > 64:
@@ -243,8 +262,9 @@ def delayed_expert_outcomes(task, params, keys, delays, act: Callable = expert_m
     if tuple(getattr(keys, "shape", ())) != delays.shape:
         raise ValueError(f"keys must be one PRNG key per delay (shape {delays.shape}), got "
                          f"{getattr(keys, 'shape', None)}")
+    check_int("hold", hold, 1, 64)
     delays = delays.astype(np.int32)
-    fn = _delay_program(task, int(delays.max()), act)
+    fn = _delay_program(task, int(delays.max()), act, int(hold))
     return {k: np.asarray(v) for k, v in jax.device_get(fn(params, keys, jnp.asarray(delays))).items()}
 
 
@@ -314,7 +334,7 @@ def screen_level(level: str, out: str | Path, config: ScreenConfig, *, levels_di
     # keeps the baselines, and other thresholds keep the delay measurements too.
     base_meta = {"level": level, "episodes": config.episodes, "seed": config.seed, "format": FORMAT}
     delay_meta = dict(base_meta, delays=list(config.delays), ppo_steps=config.ppo_steps,
-                      ppo=config.ppo.to_dict())
+                      ppo=config.ppo.to_dict(), **({} if config.hold == 1 else {"hold": config.hold}))
     task = kenv.make_env(level, levels_dir)
     E = config.episodes
 
@@ -362,7 +382,7 @@ def screen_level(level: str, out: str | Path, config: ScreenConfig, *, levels_di
         params = kexp.load_expert(path)
         ds = np.repeat(np.asarray(config.delays, np.int32), E)
         keys = jnp.tile(_keys(config, level, 1, E), len(config.delays))  # the same E episodes at every delay
-        o = delayed_expert_outcomes(task, params, keys, ds)
+        o = delayed_expert_outcomes(task, params, keys, ds, hold=config.hold)
         rows = [{"delay": d, "solved": float(o["solved"][i * E:(i + 1) * E].mean()),
                  "return": float(o["return"][i * E:(i + 1) * E].mean())} for i, d in enumerate(config.delays)]
         return {"expert": str(path.relative_to(folder)), "rows": rows, "env_steps": int(o["length"].sum())}
@@ -401,7 +421,7 @@ def format_screen(results: list[dict], config: ScreenConfig) -> str:
     lines = [f"# Kinetix level screen", "",
              f"Rules ([KS-5]): kept when no constant action solves >= {config.const_threshold}, the expert solves "
              f">= {config.expert_threshold} at d = 0, and its solve rate falls by >= {config.min_drop} from d = 0 "
-             f"to d = {ds[-1]}; a level a constant action solves gets no PPO run (-). {config.episodes} episodes per row; PPO {config.ppo_steps} env steps requested "
+             f"to d = {ds[-1]}, its input held for {config.hold} step{'s' if config.hold > 1 else ''} ([KS-4]); a level a constant action solves gets no PPO run (-). {config.episodes} episodes per row; PPO {config.ppo_steps} env steps requested "
              f"({config.ppo.num_envs} envs x {config.ppo.num_steps} steps per iteration), seed {config.seed}.", "",
              head, "|" + "---|" * (6 + len(ds))]
     for r in results:

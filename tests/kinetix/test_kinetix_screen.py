@@ -69,6 +69,26 @@ def test_delayed_execution_acts_on_the_input_of_step_t_minus_d():
         ks.delayed_expert_outcomes(CountingTask(), None, keys[:2], delays, act=newest_step)
 
 
+def test_held_input_is_the_one_of_the_block_start_minus_d():
+    """KS-4: with hold s the action at step t acts on the input of step c - d, c = t - (t mod s): for s = 4,
+    8 steps, return = 4 max(-d, 0) + 4 max(4 - d, 0) = 16, 12, 8, 0 for d = 0, 1, 2, 4 (hand-summed); hold 1
+    is the test above; a hold outside [1, 64] is an error naming it."""
+    delays = np.array([0, 1, 2, 4])
+    keys = jax.random.split(jax.random.key(0), delays.size)
+    out = ks.delayed_expert_outcomes(CountingTask(), None, keys, delays, act=newest_step, hold=4)
+    want = [sum(max(t - t % 4 - d, 0) for t in range(L)) for d in delays]
+    assert want == [16, 12, 8, 0]
+    np.testing.assert_array_equal(out["return"], np.asarray(want, np.float32))
+    with pytest.raises(ValueError, match="^hold must be"):
+        ks.delayed_expert_outcomes(CountingTask(), None, keys, delays, act=newest_step, hold=0)
+    with pytest.raises(ValueError, match="^hold must be"):
+        ks.ScreenConfig(hold=65)
+    # KS-6: hold 1 is written as no key (as before the option), and a config without it reads back as hold 1.
+    assert "hold" not in ks.ScreenConfig(hold=1).to_dict() and ks.ScreenConfig().to_dict()["hold"] == 4
+    assert ks.ScreenConfig.from_dict(ks.ScreenConfig(hold=1).to_dict()) == ks.ScreenConfig(hold=1)
+    assert ks.ScreenConfig.from_dict(ks.ScreenConfig().to_dict()) == ks.ScreenConfig()
+
+
 def test_baselines_hold_constant_actions_and_draw_random_ones():
     """KS-2: a constant-action env executes its action at every step of its first episode (return 8 a[0]);
     a random-action env draws uniform motors in [-1, 1], so its return differs and stays within [-8, 8].
@@ -245,10 +265,16 @@ def test_committed_screen_report_is_its_results():
     level's verdict there is the one screen_verdict gives from its committed stage files."""
     from pathlib import Path
 
-    d = Path(__file__).resolve().parents[2] / "results" / "kinetix" / "screen"
+    root = Path(__file__).resolve().parents[2] / "results" / "kinetix"
+    folders = sorted(p.parent for p in root.glob("screen*/screen.json"))
+    assert {f.name for f in folders} >= {"screen", "screen-hold4"}
+    for d in folders:
+        _check_screen_folder(d)
+
+
+def _check_screen_folder(d):
     res = json.loads((d / "screen.json").read_text())
-    cfg = dict(res["config"], ppo=PPOConfig(**res["config"]["ppo"]))
-    config = ks.ScreenConfig(**cfg)
+    config = ks.ScreenConfig.from_dict(res["config"])
     assert (d / "screen.md").read_text() == ks.format_screen(res["levels"], config)
     for r in res["levels"]:
         base = json.loads((d / r["level"] / "baselines.json").read_text())
