@@ -86,6 +86,15 @@ def _diff(t, nd=3):
     return f"{'+' if t['diff'] >= 0 else ''}{_f(t['diff'], nd)} [{_f(t['lo'], nd)}, {_f(t['hi'], nd)}]"
 
 
+def _diff_vs(summary, t, hard):
+    """``_diff`` plus, when the pairing used fewer fine-tuning seeds than Train Hard's quoted value pools, how
+    many: the quoted means and the paired difference then cover different seeds ([KR-3])."""
+    k, n = (t or {}).get("seeds"), summary.get(hard, {}).get("seeds")
+    note = f", paired on the {k} seed{'s' if k != 1 else ''} both ran" if k is not None and n is not None and k < n \
+        else ""
+    return _diff(t) + note
+
+
 def _get(summary, row, scope, metric):
     return summary.get(row, {}).get("scopes", {}).get(scope, {}).get(metric)
 
@@ -176,7 +185,7 @@ def verdicts(summary: dict, env: Environment, soft2_rows=(), n1_identical: bool 
         ev = (f"`{row}` high-delay {J} {_ci(_get(summary, row, 'high', J))} vs Train Hard "
               f"{_ci(_get(summary, hard, 'high', J))} (diff {_diff(tj)}); overall {w} "
               f"{_ci(_get(summary, row, 'overall', S))} vs {_ci(_get(summary, hard, 'overall', S))}"
-              f" (diff {_diff(ts)})")
+              f" (diff {_diff_vs(summary, ts, hard)})")
         if why:
             v = "inconclusive"
         elif _sign(tj) == 1 or (ts is not None and ts["hi"] < -SMALL_COST):
@@ -205,7 +214,7 @@ def verdicts(summary: dict, env: Environment, soft2_rows=(), n1_identical: bool 
         why = _enough(summary, [row, hard], env)
         t = _vs(summary, row, "overall", S)
         ev = (f"`{row}` overall {w} {_ci(_get(summary, row, 'overall', S))} vs Train Hard "
-              f"{_ci(_get(summary, hard, 'overall', S))} (diff {_diff(t)})")
+              f"{_ci(_get(summary, hard, 'overall', S))} (diff {_diff_vs(summary, t, hard)})")
         v = "inconclusive"
         if why is None:
             if t is None or not math.isfinite(t["lo"]):

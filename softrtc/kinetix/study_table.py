@@ -207,7 +207,7 @@ def _row_delays(data, row):
 
 def _paired(data, row, scope_delays, metric):
     """Paired difference ``row - train_hard`` per level, its bootstrap interval and sign-flip test ([KR-3])."""
-    blocks, deltas = [], []
+    blocks, deltas, seeds = [], [], []
     for lv in data["levels"]:
         a_slot, b_slot = data["cells"].get((row, lv)), data["cells"].get(("train_hard", lv))
         if not a_slot or not b_slot:
@@ -223,6 +223,7 @@ def _paired(data, row, scope_delays, metric):
             continue
         d = np.broadcast_to(a, b.shape) - b if a.shape[0] == 1 else a - b
         blocks.append(d)
+        seeds.append(len(common))
         ok = np.isfinite(d)
         cnt = ok.sum(axis=(0, 1))
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -235,7 +236,8 @@ def _paired(data, row, scope_delays, metric):
     delta = np.concatenate(deltas)[None, :]
     p = sign_flip_test(delta, np.zeros_like(delta), PERMUTATIONS, 0)["p"] if np.isfinite(delta).any() \
         else float("nan")
-    return {"diff": r["mean"], "lo": r["lo"], "hi": r["hi"], "n": r["n"], "p_perm": p, "levels": len(blocks)}
+    return {"diff": r["mean"], "lo": r["lo"], "hi": r["hi"], "n": r["n"], "p_perm": p, "levels": len(blocks),
+            "seeds": min(seeds)}
 
 
 def summarize_study(data: dict) -> dict:

@@ -109,6 +109,10 @@ def test_paired_difference_of_a_shifted_row(study):
     e = summary["train_soft:delay_scaled:2"]
     assert (e["levels"], e["seeds"], e["episodes"], e["delays"]) == (2, 3, EPISODES, [0, 1, 2, 3, 4])
     assert summary["naive"]["seeds"] == 1 and summary["train_soft:delay_scaled:1"]["seeds"] == 1
+    # The pairing's seeds: Soft lam 2 pairs 3 with 3, Soft lam 1 its one seed with Train Hard's seed 0, a base
+    # row every Train Hard seed.
+    assert [summary[r]["vs_hard"]["overall"]["solved"]["seeds"] for r in
+            ("train_soft:delay_scaled:2", "train_soft:delay_scaled:1", "naive")] == [3, 1, 3]
     # Inference Hard's high-delay solve is 0 on every episode: mean 0, interval [0, 0].
     s = summary["inference_hard"]["scopes"]["high"]["solved"]
     assert (s["mean"], s["lo"], s["hi"]) == (0.0, 0.0, 0.0)
@@ -138,6 +142,9 @@ def test_verdicts_supported_not_supported_inconclusive(study):
            "within 10 points)."]
     assert c3["verdict"] == "inconclusive"
     assert c3["reason"] == "`train_soft:delay_scaled:1` has 1 fine-tuning seed(s), fewer than 3"
+    # Its paired difference covers seed 0 only, while the quoted Train Hard value pools 3 seeds: said so.
+    assert c3["evidence"].endswith(", paired on the 1 seed both ran)")
+    assert "paired on" not in c2["evidence"]
     c4 = v["The offset sweep (clip) trades high-delay solve for smoothness (L = 6 vs L = 0)."]
     assert c4["verdict"] == "inconclusive" and c4["reason"] == "the offset rows L = 0 and L = 6 were not both run"
     assert c4["evidence"] == "no row of the sweep in the results"
