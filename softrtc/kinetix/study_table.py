@@ -481,13 +481,16 @@ def write_plots(summary: dict, out_dir) -> list:
     paths = []
     for name, metric, label in ((PLOTS[0], "solved", "solve rate"), (PLOTS[1], "jerk", "jerk (D2)")):
         fig, ax = plt.subplots(figsize=(7, 4.5))
+        n_levels = max(e["levels"] for e in summary.values())
         for r, e in summary.items():
             ds = [d for d in e["delays"] if metric in e["scopes"].get(f"d{d}", {})]
+            # A row run on fewer levels is a mean over fewer levels: its label says so.
+            few = f" ({e['levels']} of {n_levels} levels)" if e["levels"] < n_levels else ""
             ax.plot(ds, [e["scopes"][f"d{d}"][metric]["mean"] for d in ds], "o-" if r == "train_hard" else ".-",
-                    label=_display(r))
+                    label=_display(r) + few)
         ax.set_xticks(sorted({d for e in summary.values() for d in e["delays"]}))
         ax.set_xlabel("delay d (control steps)")
-        ax.set_ylabel(f"{label}, mean over levels")
+        ax.set_ylabel(f"{label}, mean over the row's levels")
         ax.legend(fontsize=6)
         fig.tight_layout()
         path = out / name
