@@ -104,6 +104,11 @@ class ScreenConfig:
         if not isinstance(ppo, dict):
             raise ValueError(f"screen config's ppo must be a JSON object, got {ppo!r}")
         d.setdefault("hold", 1)
+        fields = {f.name for f in dataclasses.fields(cls)} - {"ppo"}
+        ppo_fields = {f.name for f in dataclasses.fields(PPOConfig)}
+        if set(d) - fields or set(ppo) - ppo_fields:
+            raise ValueError(f"screen config has unknown keys {sorted(set(d) - fields)}, ppo "
+                             f"{sorted(set(ppo) - ppo_fields)}; known: {sorted(fields)}, ppo {sorted(ppo_fields)}")
         return cls(**d, ppo=PPOConfig(**ppo))
 
     @property
@@ -274,7 +279,7 @@ def screen_verdict(baselines: dict, delays: dict | None, config: ScreenConfig) -
     rule drops before its expert is trained ([KS-6]); then that rule is the one reason."""
     reasons = []
     best = max(baselines["constant"], key=lambda r: r["solved"])
-    if best["solved"] >= config.const_threshold:
+    if _constant_drops(baselines, config):
         reasons.append(f"a constant action solves it: {best['action']} solves {best['solved']:.2f} "
                        f">= {config.const_threshold}")
     if delays is None:
@@ -356,16 +361,20 @@ def screen_level(level: str, out: str | Path, config: ScreenConfig, *, levels_di
     base, cached = _stage(folder / "baselines.json", base_meta, baselines)
     log(f"{level}: constant actions best solve {max(r['solved'] for r in base['constant']):.2f}, random "
         f"{base['random']['solved']:.2f}" + (" (read back)" if cached else f" ({base['wall_s']:.0f} s)"))
+    def result(verdict, ppo_steps, ppo_wall, curve, rows, wall, steps):
+        return {"level": level, "kept": verdict["kept"], "reasons": verdict["reasons"],
+                "constant_best": max(base["constant"], key=lambda r: r["solved"]),
+                "constant_count": len(base["constant"]), "random_solved": base["random"]["solved"],
+                "ppo_env_steps": ppo_steps, "ppo_wall_s": ppo_wall, "ppo_curve": curve, "expert_by_delay": rows,
+                "wall_s": dict(baselines=base["wall_s"], **wall),
+                "env_steps": dict(baselines=base["env_steps"], **steps),
+                "meta": meta}
+
     if _constant_drops(base, config):
         # [KS-5]'s first rule already drops the level: no expert can keep it, so none is trained ([KS-6]).
-        verdict = screen_verdict(base, None, config)
         log(f"{level}: dropped by a constant action; no PPO run and no delay measurement")
-        res = {"level": level, "kept": False, "reasons": verdict["reasons"],
-               "constant_best": max(base["constant"], key=lambda r: r["solved"]),
-               "constant_count": len(base["constant"]), "random_solved": base["random"]["solved"],
-               "ppo_env_steps": 0, "ppo_wall_s": 0.0, "ppo_curve": [], "expert_by_delay": None,
-               "wall_s": {"baselines": base["wall_s"], "ppo": 0.0, "delays": 0.0},
-               "env_steps": {"baselines": base["env_steps"], "ppo": 0, "delays": 0}, "meta": meta}
+        res = result(screen_verdict(base, None, config), 0, 0.0, [], None, {"ppo": 0.0, "delays": 0.0},
+                     {"ppo": 0, "delays": 0})
         write_json(folder / "screen.json", res)
         return res
     t0 = time.perf_counter()
@@ -394,13 +403,8 @@ def screen_level(level: str, out: str | Path, config: ScreenConfig, *, levels_di
     # An iteration in which no episode ended has no solve rate or return: null in the JSON.
     curve = [{k: (None if isinstance(r[k], float) and not math.isfinite(r[k]) else r[k])
               for k in ("env_steps", "solved", "return")} for r in _read_curve(Path(ppo["curve_csv"]))]
-    res = {"level": level, "kept": verdict["kept"], "reasons": verdict["reasons"],
-           "constant_best": max(base["constant"], key=lambda r: r["solved"]), "constant_count": len(base["constant"]),
-           "random_solved": base["random"]["solved"], "ppo_env_steps": ppo["env_steps"], "ppo_wall_s": ppo_wall,
-           "ppo_curve": curve, "expert_by_delay": dl["rows"],
-           "wall_s": {"baselines": base["wall_s"], "ppo": ppo_wall, "delays": dl["wall_s"]},
-           "env_steps": {"baselines": base["env_steps"], "ppo": ppo["env_steps"], "delays": dl["env_steps"]},
-           "meta": meta}
+    res = result(verdict, ppo["env_steps"], ppo_wall, curve, dl["rows"], {"ppo": ppo_wall, "delays": dl["wall_s"]},
+                 {"ppo": ppo["env_steps"], "delays": dl["env_steps"]})
     write_json(folder / "screen.json", res)
     return res
 
@@ -421,7 +425,9 @@ def format_screen(results: list[dict], config: ScreenConfig) -> str:
     lines = [f"# Kinetix level screen", "",
              f"Rules ([KS-5]): kept when no constant action solves >= {config.const_threshold}, the expert solves "
              f">= {config.expert_threshold} at d = 0, and its solve rate falls by >= {config.min_drop} from d = 0 "
-             f"to d = {ds[-1]}, its input held for {config.hold} step{'s' if config.hold > 1 else ''} ([KS-4]); a level a constant action solves gets no PPO run (-). {config.episodes} episodes per row; PPO {config.ppo_steps} env steps requested "
+             f"to d = {ds[-1]}, its input held for {config.hold} step{'s' if config.hold > 1 else ''} ([KS-4]); "
+             f"a level a constant action solves gets no PPO run (-). {config.episodes} episodes per row; "
+             f"PPO {config.ppo_steps} env steps requested "
              f"({config.ppo.num_envs} envs x {config.ppo.num_steps} steps per iteration), seed {config.seed}.", "",
              head, "|" + "---|" * (6 + len(ds))]
     for r in results:

@@ -87,6 +87,8 @@ def test_held_input_is_the_one_of_the_block_start_minus_d():
     assert "hold" not in ks.ScreenConfig(hold=1).to_dict() and ks.ScreenConfig().to_dict()["hold"] == 4
     assert ks.ScreenConfig.from_dict(ks.ScreenConfig(hold=1).to_dict()) == ks.ScreenConfig(hold=1)
     assert ks.ScreenConfig.from_dict(ks.ScreenConfig().to_dict()) == ks.ScreenConfig()
+    with pytest.raises(ValueError, match=r"^screen config has unknown keys \['holds'\]"):
+        ks.ScreenConfig.from_dict(dict(ks.ScreenConfig().to_dict(), holds=2))
 
 
 def test_baselines_hold_constant_actions_and_draw_random_ones():
