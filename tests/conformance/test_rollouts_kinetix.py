@@ -174,7 +174,7 @@ def test_kinetix_vectors_content(kinetix):
         assert np.array_equal(np.asarray(a["noise"]), noise) and (a["d"], a["arrival"]) == (d, arrival)
     assert set(per) == {(m, f"ep{i:03d}") for m in ALL for i in range(2)}
     assert all(v == list(range(len(v))) and 1 <= len(v) <= 16 for v in per.values())
-    assert sum(len(v) for v in per.values()) == len(cases) == 96  # every episode ends with the level ([CR-15])
+    assert sum(len(v) for v in per.values()) == len(cases) == 108  # every episode ends with the level ([CR-15])
 
 
 def test_vectors_replay_for_the_reference_and_the_js_port(kinetix, tmp_path):
