@@ -46,7 +46,7 @@ KINETIX = shared.Environment(success="solved", success_word="solve", succeeds="s
 _NEED = ("method", "level", "delay", "episode", "return", "solved", "length", "delta", "jerk")
 _DISPLAY = {"naive": "Base Naive", "inference_hard": "Inference Hard RTC", "inference_soft": "Inference Soft RTC",
             "train_hard": "Train Hard RTC", "train_soft": "Train Soft RTC"}
-_SEED = re.compile(r"seed_(0|[1-9][0-9]{0,5})")
+_SEED = re.compile(r"seed_(0|[1-9][0-9]{0,5})(?:\.[a-z0-9][a-z0-9_-]{0,31})?")
 _INT = re.compile(r"-?[0-9]+")
 
 
@@ -115,7 +115,9 @@ def read_study(study_dir) -> dict | None:
     Returns ``{"levels": [...], "cells": {(row, level): {seed: {delay:
     {episode: {metric: value}}}}}, "files": [...]}``. A base row (naive,
     inference-time) has one seed: it may appear in several seed folders of a
-    level only with the same episodes, and counts once. Every file is checked
+    level only with the same episodes, and counts once. ``seed_<k>.<part>``
+    folders add the rows of further ``eval`` runs to seed ``k``; a trained
+    row of one seed in two folders is an error. Every file is checked
     as it is read: a damaged one is a ValueError naming it.
     """
     if not isinstance(study_dir, (str, os.PathLike)) or not os.fspath(study_dir):
@@ -136,7 +138,8 @@ def read_study(study_dir) -> dict | None:
         for sd in sorted(p for p in lv_dir.iterdir() if not p.name.startswith(".")):
             m = _SEED.fullmatch(sd.name)
             if not sd.is_dir() or m is None:
-                raise ValueError(f"{str(sd)!r} must be a results folder named seed_<k> (k a fine-tuning seed)")
+                raise ValueError(f"{str(sd)!r} must be a results folder named seed_<k> or seed_<k>.<part> (k a "
+                                 "fine-tuning seed, part lower-case letters, digits, _ or -)")
             if not (sd / "episodes.csv").is_file():
                 raise ValueError(f"results folder {str(sd)!r} has no episodes.csv (the output of "
                                  "`softrtc kinetix eval --out`)")
@@ -145,6 +148,7 @@ def read_study(study_dir) -> dict | None:
             continue
         levels.append(lv_dir.name)
         base_from: dict = {}
+        row_from: dict = {}
         for seed, path in sorted(seeds):
             files.append(str(path))
             by_row: dict = {}
@@ -158,7 +162,11 @@ def read_study(study_dir) -> dict | None:
                         raise ValueError(f"results file {str(path)!r}: base row {row!r} differs from its episodes "
                                          f"in {str(first_path)!r}; a base row has one seed ([KR-1])")
                     continue
+                if seed in slot:  # a trained row of one seed in two parts: which one counts would be a guess
+                    raise ValueError(f"results file {str(path)!r}: row {row!r} of seed {seed} is also in "
+                                     f"{str(row_from[(row, seed)])!r}; a row of a seed belongs to one folder ([KR-1])")
                 slot[seed] = per_d
+                row_from[(row, seed)] = path
                 base_from.setdefault(row, (seed, path))
     if not levels:
         return None

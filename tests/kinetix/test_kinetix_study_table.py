@@ -229,8 +229,25 @@ def test_damaged_results_are_a_value_error_naming_the_file(tmp_path, capsys):
         st.read_study(root)
     _write(f.parent, rows)
     (root / "eval" / LEVELS[0] / "seed_x").mkdir()
-    with pytest.raises(ValueError, match=r"seed_x' must be a results folder named seed_<k>"):
+    with pytest.raises(ValueError, match=r"seed_x' must be a results folder named seed_<k> or seed_<k>.<part>"):
         st.read_study(root)
+    (root / "eval" / LEVELS[0] / "seed_x").rmdir()
+    # Rows of seed 1 in a second eval run's folder seed_1.more: read as seed 1; the same row in both is an error.
+    whole = st.summarize_study(st.read_study(root))
+    soft = [r for r in rows if r["method"] == "train_soft:delay_scaled:2"]
+    _write(f.parent, [r for r in rows if r["method"] != "train_soft:delay_scaled:2"])
+    _write(f.parent.parent / "seed_1.more", soft)
+    split = st.summarize_study(st.read_study(root))
+    assert split["train_soft:delay_scaled:2"] == whole["train_soft:delay_scaled:2"]
+    assert split["train_soft:delay_scaled:2"]["seeds"] == 3
+    _write(f.parent, rows)
+    with pytest.raises(ValueError, match=r"row 'train_soft:delay_scaled:2' of seed 1 is also in .*seed_1"):
+        st.read_study(root)
+    for bad in ("seed_1.", "seed_1.Big", "seed_01.x"):
+        (root / "eval" / LEVELS[0] / bad).mkdir()
+        with pytest.raises(ValueError, match="must be a results folder named"):
+            st.read_study(root)
+        (root / "eval" / LEVELS[0] / bad).rmdir()
     with pytest.raises(ValueError, match="^study_dir must be an existing folder"):
         st.read_study(tmp_path / "absent")
 
