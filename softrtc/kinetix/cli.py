@@ -129,7 +129,7 @@ def add_subparsers(subparsers) -> None:
     rp = sub.add_parser("report", help="the study's paper-shaped table, paired tests, plots and verdicts from its "
                                        "evaluation folders ([KR-6])")
     rp.add_argument("--study", type=input_dir(), required=True,
-                    help="study folder whose eval/<level>/seed_<k>/ hold `kinetix eval` outputs "
+                    help="study folder whose eval/<level>/seed_<k>[.<part>]/ hold `kinetix eval` outputs "
                          "(e.g. results/kinetix/study)")
     rp.add_argument("--out", type=output_dir(), default=None, help="folder for the plots (default: --study)")
     rp.add_argument("--bench", type=input_dir(), default=None,
