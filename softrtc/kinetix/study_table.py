@@ -488,18 +488,20 @@ def write_plots(summary: dict, out_dir) -> list:
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     for name, metric, label in ((PLOTS[0], "solved", "solve rate"), (PLOTS[1], "jerk", "jerk (D2)")):
-        fig, ax = plt.subplots(figsize=(7, 4.5))
+        fig, ax = plt.subplots(figsize=(9.5, 4.5))
         n_levels = max(e["levels"] for e in summary.values())
-        for r, e in summary.items():
+        colors = plt.get_cmap("tab20").colors
+        for i, (r, e) in enumerate(summary.items()):
             ds = [d for d in e["delays"] if metric in e["scopes"].get(f"d{d}", {})]
             # A row run on fewer levels is a mean over fewer levels: its label says so.
             few = f" ({e['levels']} of {n_levels} levels)" if e["levels"] < n_levels else ""
-            ax.plot(ds, [e["scopes"][f"d{d}"][metric]["mean"] for d in ds], "o-" if r == "train_hard" else ".-",
-                    label=_display(r) + few)
+            # 20 colours, then the same colours dashed: no two rows share a line style.
+            ax.plot(ds, [e["scopes"][f"d{d}"][metric]["mean"] for d in ds], marker="o" if r == "train_hard" else ".",
+                    color=colors[i % 20], linestyle=("-", "--", ":")[i // 20 % 3], label=_display(r) + few)
         ax.set_xticks(sorted({d for e in summary.values() for d in e["delays"]}))
         ax.set_xlabel("delay d (control steps)")
         ax.set_ylabel(f"{label}, mean over the row's levels")
-        ax.legend(fontsize=6)
+        ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5))
         fig.tight_layout()
         path = out / name
         # No software tag, so the bytes depend on the figure only; written whole or not at all.
