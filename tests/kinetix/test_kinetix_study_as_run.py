@@ -94,6 +94,9 @@ def test_held_screens_keep_two_levels_of_the_34():
     h1 = _screen("screen-hold1-262k")["m_h6_thrust_over"]
     assert h1["kept"] and [round(d["solved"], 2) for d in h1["expert_by_delay"]] == [1.0, 1.0, 0.97, 0.7]
     assert "to 0.70 with `hold = 1`" in " ".join(_section("KS-12").split())
+    m_h10 = _screen("screen-hold4-393k")["m_h10_thrust_right_easy"]
+    assert not m_h10["kept"] and [d["solved"] for d in m_h10["expert_by_delay"]] == [1.0, 1.0, 1.0, 1.0]
+    assert "continued to 393,216 PPO steps" in " ".join(_section("KS-11").split())
     text = " ".join(_section("KS-11").split())
     n_const = int(re.search(r"a constant action solves (\d+) of them", text).group(1))
     const = [lv for lv, r in h4.items() if r["expert_by_delay"] is None]
