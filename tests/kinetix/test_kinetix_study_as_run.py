@@ -99,6 +99,10 @@ def test_held_screens_keep_two_levels_of_the_34():
     s_h9 = _screen("screen-hold4-393k")["s_h9_explode_then_thrust_over"]
     assert not s_h9["kept"] and max(d["solved"] for d in s_h9["expert_by_delay"]) == 0.0
     assert "were continued to 393,216 PPO steps" in " ".join(_section("KS-11").split())
+    long = _screen("screen-hold4-1m")
+    assert sorted(long) == ["m_h17_thrustcontrol_left", "s_h9_explode_then_thrust_over"]
+    assert all(not r["kept"] and max(d["solved"] for d in r["expert_by_delay"]) == 0.0 for r in long.values())
+    assert "continued to 1,048,576 steps" in " ".join(_section("KS-11").split())
     text = " ".join(_section("KS-11").split())
     n_const = int(re.search(r"a constant action solves (\d+) of them", text).group(1))
     const = [lv for lv, r in h4.items() if r["expert_by_delay"] is None]
