@@ -495,7 +495,7 @@ def write_plots(summary: dict, out_dir) -> list:
             ds = [d for d in e["delays"] if metric in e["scopes"].get(f"d{d}", {})]
             # A row run on fewer levels is a mean over fewer levels: its label says so.
             few = f" ({e['levels']} of {n_levels} levels)" if e["levels"] < n_levels else ""
-            # 20 colours, then the same colours dashed: no two rows share a line style.
+            # 20 colours, then the same colours dashed, then dotted: up to 60 rows each get their own style.
             ax.plot(ds, [e["scopes"][f"d{d}"][metric]["mean"] for d in ds], marker="o" if r == "train_hard" else ".",
                     color=colors[i % 20], linestyle=("-", "--", ":")[i // 20 % 3], label=_display(r) + few)
         ax.set_xticks(sorted({d for e in summary.values() for d in e["delays"]}))

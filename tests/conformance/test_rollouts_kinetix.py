@@ -11,6 +11,7 @@ import hashlib
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -175,6 +176,8 @@ def test_kinetix_vectors_content(kinetix):
     assert set(per) == {(m, f"ep{i:03d}") for m in ALL for i in range(2)}
     assert all(v == list(range(len(v))) and 1 <= len(v) <= 16 for v in per.values())
     assert sum(len(v) for v in per.values()) == len(cases) == 108  # every episode ends with the level ([CR-15])
+    readme = " ".join((Path(__file__).resolve().parents[2] / "README.md").read_text().split())
+    assert f"{len(cases)} recorded requests" in readme
 
 
 def test_vectors_replay_for_the_reference_and_the_js_port(kinetix, tmp_path):
